@@ -1,0 +1,268 @@
+"""One photo in, one palindromic 3D Ken Burns clip out; and a folder of them.
+
+This is the only module that knows the order of the stages:
+image -> depth -> plan -> extended point cloud -> frames -> encoder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from kbbatch import paper
+from kbbatch.camera import Plan, SceneGeometry, depth_from_disparity, nearest_depth, output_view
+from kbbatch.camera import working_size as compute_working_size
+from kbbatch.depth import DepthError, estimate_disparity
+from kbbatch.encode import encode_frames, palindrome_order
+from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
+from kbbatch.inpaint import build_extended_cloud
+from kbbatch.presets import Preset
+from kbbatch.render import PointCloud, fill_from_background, render, to_uint8
+from planners import PlanRequest, get_planner
+
+MAX_POINT_SPACING_PX = 1.8
+"""Points may land at most this far apart in the output at the tightest crop; bilinear splats
+then still meet, so the cloud is upsampled when the photo itself is too small."""
+
+FRAME_STORE_RAM_BYTES = 1 << 30
+"""Rendered frames are kept in memory up to this size, else in a temporary file, so that the
+return half of the palindrome is read back rather than rendered twice."""
+
+CLIP_SUFFIX = ".mp4"
+
+
+@dataclass(frozen=True)
+class ClipOptions:
+    planner: str = "center"
+    depth: str = "auto"
+    threads: int = max(1, os.cpu_count() or 1)
+
+
+@dataclass
+class ClipResult:
+    source: str
+    output: str | None
+    status: str  # "done" or "failed"
+    seconds: float
+    error: str | None = None
+    depth_backend: str | None = None
+    plan: dict | None = None
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    frames: int = 0
+    detail: str | None = None  # traceback of an unexpected failure
+
+
+@dataclass(frozen=True)
+class PreparedScene:
+    """Everything the frames need, computed once per photo."""
+
+    plan: Plan
+    scene: SceneGeometry
+    cloud: PointCloud
+    depth_backend: str
+
+
+def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
+    """Point density relative to the working size: one point per output pixel at the widest
+    crop when the photo has the pixels, and never so sparse that splats stop meeting."""
+    widest = max(plan.start.width_px, plan.end.width_px)
+    tightest = min(plan.start.width_px, plan.end.width_px)
+    source_scale = source_long_px / max(scene.width_px, scene.height_px)
+    wanted = min(preset.width_px / widest, source_scale)
+    needed = preset.width_px / tightest / MAX_POINT_SPACING_PX
+    return max(wanted, needed, 1.0)
+
+
+def resize_to(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    shrinking = width < image.shape[1]
+    interpolation = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
+    return cv2.resize(image, (width, height), interpolation=interpolation)
+
+
+def prepare_scene(
+    photo: np.ndarray,
+    photo_path: Path | None,
+    preset: Preset,
+    options: ClipOptions,
+    timings: dict[str, float],
+    plan: Plan | None = None,
+) -> PreparedScene:
+    """Depth, plan and the extended point cloud for one photo."""
+    clock = time.perf_counter()
+    width, height = compute_working_size(photo.shape[1], photo.shape[0])
+    working = resize_to(photo, width, height)
+    depth_result = estimate_disparity(working, photo_path, options.depth)
+    depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
+    timings["depth"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    if plan is None:
+        plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
+    if not plan.parallax:
+        depth = np.full_like(depth, float(depth.min()))
+    scene = SceneGeometry(width, height, nearest_depth(depth))
+    timings["plan"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
+    photo_cloud = resize_to(photo, round(width * scale), round(height * scale))
+    extension = build_extended_cloud(photo_cloud, depth, plan, scene)
+    timings["inpaint"] = time.perf_counter() - clock
+    return PreparedScene(plan, scene, extension.cloud, depth_result.backend)
+
+
+def render_frame(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
+    """One output frame at time t in [0, 1], every pixel filled."""
+    view = output_view(prepared.plan, prepared.scene, t, preset.width_px, preset.height_px)
+    disparity_scale = prepared.scene.focal_px * paper.DISPARITY_MAX_PX
+    return to_uint8(fill_from_background(render(prepared.cloud, view, disparity_scale)))
+
+
+def frame_times(preset: Preset) -> list[float]:
+    count = preset.frames_forward
+    return [i / (count - 1) for i in range(count)]
+
+
+def render_clip_frames(
+    prepared: PreparedScene,
+    preset: Preset,
+    threads: int,
+    progress: Callable[[int], None] | None = None,
+) -> Iterator[np.ndarray]:
+    """The palindromic frame sequence; each time step is rendered once, in parallel threads."""
+    times = frame_times(preset)
+    frame_bytes = preset.width_px * preset.height_px * 3
+    shape = (len(times), preset.height_px, preset.width_px, 3)
+    with tempfile.TemporaryDirectory(prefix="kbbatch-frames-") as scratch:
+        if frame_bytes * len(times) <= FRAME_STORE_RAM_BYTES:
+            store = np.empty(shape, np.uint8)
+        else:
+            store = np.lib.format.open_memmap(Path(scratch) / "frames.npy", "w+", np.uint8, shape)
+        rendered = ordered_map(lambda t: render_frame(prepared, preset, t), times, threads)
+        for index, frame in enumerate(rendered):
+            store[index] = frame
+            if progress:
+                progress(1)
+            yield frame
+        for index in palindrome_order(len(times))[len(times):]:
+            yield store[index]
+        del store
+
+
+def ordered_map(function: Callable, items: list, threads: int) -> Iterator:
+    """Results in order, computed by threads with at most 2 x threads in flight (bounded memory)."""
+    threads = max(1, threads)
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        pending: deque = deque()
+        for item in items:
+            pending.append(pool.submit(function, item))
+            if len(pending) >= 2 * threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+def output_names(sources: list[Path]) -> dict[Path, str]:
+    """Clip file names: the photo's stem, or its full name where two photos share a stem."""
+    stems: dict[str, int] = {}
+    for source in sources:
+        stems[source.stem.lower()] = stems.get(source.stem.lower(), 0) + 1
+    return {
+        s: (s.stem if stems[s.stem.lower()] == 1 else s.name) + CLIP_SUFFIX for s in sources
+    }
+
+
+def plan_summary(plan: Plan) -> dict:
+    return {"planner": plan.planner, "easing": plan.easing, "parallax": plan.parallax,
+            "start": asdict(plan.start), "end": asdict(plan.end)}  # fmt: skip
+
+
+def make_clip(
+    source: Path,
+    output: Path,
+    preset: Preset,
+    options: ClipOptions,
+    show_progress: bool = True,
+) -> ClipResult:
+    """Render one photo into one clip; failures are returned, never raised."""
+    started = time.perf_counter()
+    timings: dict[str, float] = {}
+    result = ClipResult(str(source), None, "failed", 0.0)
+    try:
+        clock = time.perf_counter()
+        photo = read_image(source)
+        timings["read"] = time.perf_counter() - clock
+        prepared = prepare_scene(photo, source, preset, options, timings)
+        result.depth_backend = prepared.depth_backend
+        result.plan = plan_summary(prepared.plan)
+        clock = time.perf_counter()
+        with tqdm(total=preset.frames_forward, desc=f"  frames {source.name}", unit="frame",
+                  leave=False, disable=not show_progress) as bar:  # fmt: skip
+            frames = render_clip_frames(prepared, preset, options.threads, bar.update)
+            with atomic_output(output, CLIP_SUFFIX) as temp_path:
+                result.frames = encode_frames(temp_path, frames, preset)
+        timings["frames+encode"] = time.perf_counter() - clock
+        result.output = str(output)
+        result.status = "done"
+    except (ImageReadError, DepthError) as error:
+        result.error = str(error)
+    except Exception as error:  # one photo must never stop the batch
+        result.error = f"{source}: {type(error).__name__}: {error}"
+        result.detail = traceback.format_exc()
+    result.seconds = time.perf_counter() - started
+    result.stage_seconds = {k: round(v, 3) for k, v in timings.items()}
+    return result
+
+
+@dataclass
+class RunReport:
+    folder: str
+    output_folder: str
+    preset: str
+    results: list[ClipResult]
+
+    @property
+    def failed(self) -> list[ClipResult]:
+        return [r for r in self.results if r.status != "done"]
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,
+             "clips": [asdict(r) for r in self.results]}, indent=2,
+        )  # fmt: skip
+
+
+REPORT_NAME = "kbbatch-report.json"
+
+
+def run_folder(
+    folder: Path,
+    output_folder: Path,
+    preset: Preset,
+    options: ClipOptions,
+    show_progress: bool = True,
+) -> RunReport:
+    """Every photo in a folder to a clip in output_folder; the run report is written there."""
+    sources = list_images(folder)
+    names = output_names(sources)
+    results: list[ClipResult] = []
+    for source in tqdm(sources, desc="photos", unit="photo", disable=not show_progress):
+        results.append(make_clip(source, output_folder / names[source], preset, options,
+                                 show_progress))  # fmt: skip
+    report = RunReport(str(folder), str(output_folder), preset.name, results)
+    output_folder.mkdir(parents=True, exist_ok=True)
+    with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
+        temp_path.write_text(report.to_json(), encoding="utf-8")
+    return report

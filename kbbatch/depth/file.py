@@ -1,0 +1,88 @@
+"""Depth or disparity maps supplied by the user beside the photo.
+
+`<stem>.depth.png|.npy` holds depth (larger is farther); `<stem>.disparity.png|.npy` holds
+disparity (larger is nearer). PNGs may be 8 or 16-bit; zero marks an unknown pixel.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from kbbatch.depth import DepthError, DepthResult
+
+ASPECT_TOLERANCE = 0.02
+"""A map whose aspect differs from the photo's by more than this is refused, not stretched."""
+
+DEPTH_FILE_KINDS = ("depth", "disparity")
+DEPTH_FILE_SUFFIXES = (".png", ".npy")
+
+
+def find_depth_file(photo_path: Path) -> Path | None:
+    """The user's depth or disparity map beside a photo, if any."""
+    for kind in DEPTH_FILE_KINDS:
+        for suffix in DEPTH_FILE_SUFFIXES:
+            candidate = photo_path.with_name(f"{photo_path.stem}.{kind}{suffix}")
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def load_map(path: Path) -> np.ndarray:
+    """A single-channel float32 map from a PNG (8/16-bit) or .npy file."""
+    if path.suffix.lower() == ".npy":
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise DepthError(f"{path}: not a readable .npy array ({error})") from error
+    else:
+        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if data is None:
+            raise DepthError(f"{path}: not a readable image")
+    data = np.asarray(data)
+    if data.ndim == 3:
+        data = data[..., 0]
+    if data.ndim != 2:
+        raise DepthError(f"{path}: expected a 2D map, got shape {data.shape}")
+    return data.astype(np.float32)
+
+
+def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, width: int
+                       ) -> np.ndarray:  # fmt: skip
+    """Validate a user map and turn it into disparity at the given size."""
+    if not np.isfinite(data).all():
+        raise DepthError(f"{path}: contains NaN or infinite values")
+    valid = data > 0
+    if valid.sum() < 0.5 * data.size:
+        raise DepthError(f"{path}: fewer than half of its pixels hold a positive value")
+    values = data[valid]
+    if float(values.max() - values.min()) <= 1e-6 * max(1.0, float(values.max())):
+        raise DepthError(f"{path}: is constant, so it holds no depth")
+    map_aspect = data.shape[1] / data.shape[0]
+    photo_aspect = width / height
+    if abs(map_aspect / photo_aspect - 1.0) > ASPECT_TOLERANCE:
+        raise DepthError(f"{path}: is {data.shape[1]}x{data.shape[0]} (aspect {map_aspect:.3f}) "
+                         f"but the photo's aspect is {photo_aspect:.3f}")  # fmt: skip
+    if kind == "depth":
+        # Unknown pixels are taken as the farthest known depth.
+        depth = np.where(valid, data, values.max())
+        disparity = 1.0 / depth
+    else:
+        disparity = np.where(valid, data, values.min())
+    return cv2.resize(disparity.astype(np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
+
+
+class FileDepth:
+    name = "file"
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def disparity(self, image: np.ndarray, photo_path: Path | None) -> DepthResult:
+        kind = self.path.name.rsplit(".", 2)[-2].lower()
+        height, width = image.shape[:2]
+        data = load_map(self.path)
+        return DepthResult(disparity_from_map(data, kind, self.path, height, width), self.name,
+                           str(self.path))  # fmt: skip

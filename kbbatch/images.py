@@ -1,0 +1,130 @@
+"""Reading photos (any common format, orientation, depth and colour model) and writing previews.
+
+Everything here is at the edge of the pipeline: it turns files into 8-bit RGB arrays and
+arrays into files, and names the file in every error.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp"})
+
+MAX_SOURCE_PIXELS = 120_000_000
+"""Larger images are decoded at a reduced size (JPEG) or refused, so memory stays bounded."""
+
+DECODE_LONG_SIDE_PX = 8192
+"""JPEGs above MAX_SOURCE_PIXELS are decoded at a power-of-two reduction near this size."""
+
+ALPHA_MATTE_RGB = (0, 0, 0)
+"""Transparent pixels are composited onto black, the video convention for an empty frame."""
+
+Image.MAX_IMAGE_PIXELS = None  # we enforce our own, clearer limit below
+
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+class ImageReadError(Exception):
+    """A photo that cannot be used; the message names the file and the reason."""
+
+    def __init__(self, path: Path, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path = path
+        self.reason = reason
+
+
+def is_image_file(path: Path) -> bool:
+    """Whether a file looks like a photo we should process (hidden and depth maps excluded)."""
+    name = path.name
+    return (
+        path.suffix.lower() in IMAGE_SUFFIXES
+        and not name.startswith(".")
+        and ".depth." not in name.lower()
+        and ".disparity." not in name.lower()
+    )
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Photos directly inside a folder, in name order."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and is_image_file(p))
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An 8-bit RGB array, upright as the camera's EXIF says, from any supported file."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as error:
+        raise ImageReadError(path, f"cannot be opened ({error.strerror})") from error
+    if size == 0:
+        raise ImageReadError(path, "is empty (0 bytes)")
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+            if width * height > MAX_SOURCE_PIXELS:
+                if image.format != "JPEG":
+                    raise ImageReadError(
+                        path,
+                        f"is {width}x{height} px, more than the {MAX_SOURCE_PIXELS:,} px this "
+                        "tool decodes; downscale it first",
+                    )
+                image.draft("RGB", (DECODE_LONG_SIDE_PX, DECODE_LONG_SIDE_PX))
+            image.load()
+            image = ImageOps.exif_transpose(image)
+            return _to_rgb8(image)
+    except ImageReadError:
+        raise
+    except UnidentifiedImageError as error:
+        raise ImageReadError(path, "is not an image this tool can read") from error
+    except (OSError, ValueError, SyntaxError) as error:
+        raise ImageReadError(path, f"is corrupt or truncated ({error})") from error
+
+
+def _to_rgb8(image: Image.Image) -> np.ndarray:
+    """Convert any Pillow mode (16-bit, float, grey, palette, CMYK, alpha) to 8-bit RGB."""
+    mode = image.mode
+    if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
+        values = np.asarray(image, dtype=np.float64)
+        peak = 65535.0 if mode.startswith("I;16") or values.max() > 255 else 255.0
+        grey = np.clip(values / peak * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        return np.ascontiguousarray(np.repeat(grey[..., None], 3, axis=2))
+    if mode in ("RGBA", "LA", "PA") or (mode == "P" and "transparency" in image.info):
+        rgba = image.convert("RGBA")
+        matte = Image.new("RGBA", rgba.size, (*ALPHA_MATTE_RGB, 255))
+        return np.asarray(Image.alpha_composite(matte, rgba).convert("RGB")).copy()
+    return np.asarray(image.convert("RGB")).copy()
+
+
+@contextmanager
+def atomic_output(final_path: Path, suffix: str):
+    """A temporary path beside final_path, renamed onto it only if the block succeeds."""
+    final_path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temp_name = tempfile.mkstemp(
+        prefix=f".{final_path.stem}.", suffix=f".part{suffix}", dir=final_path.parent
+    )
+    os.close(handle)
+    temp_path = Path(temp_name)
+    try:
+        yield temp_path
+        os.chmod(temp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
+        os.replace(temp_path, final_path)
+    finally:
+        temp_path.unlink(missing_ok=True)
+
+
+def write_image(path: Path, rgb: np.ndarray) -> None:
+    """Write an RGB (or single-channel, 8 or 16-bit) image atomically."""
+    path = Path(path)
+    data = rgb[..., ::-1] if rgb.ndim == 3 else rgb
+    with atomic_output(path, path.suffix) as temp_path:
+        if not cv2.imwrite(str(temp_path), np.ascontiguousarray(data)):
+            raise OSError(f"{path}: could not be written")
