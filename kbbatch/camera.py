@@ -124,7 +124,7 @@ def depth_from_disparity(disparity: np.ndarray, focal: float) -> np.ndarray:
 
 
 def nearest_depth(depth: np.ndarray) -> float:
-    """The nearest depth, ignoring the border that the reference ignores (scaled for thin images)."""
+    """The nearest depth, ignoring the reference's border (narrowed for thin images)."""
     height, width = depth.shape
     border_y = min(paper.ZMIN_BORDER_PX, height // 4)
     border_x = min(paper.ZMIN_BORDER_PX, width // 4)
@@ -253,3 +253,22 @@ def clamp_inside(crop: Crop, width_px: float, height_px: float) -> Crop:
     cx = min(max(crop.center_x_px, crop.width_px / 2), width_px - crop.width_px / 2)
     cy = min(max(crop.center_y_px, crop.height_px / 2), height_px - crop.height_px / 2)
     return Crop(cx, cy, crop.width_px, crop.height_px)
+
+
+def project(view: View, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Pixel coordinates (continuous, pixel centres at i + 0.5) of world points in a view."""
+    depth = z - view.position[2]
+    u = view.focal_px * (x - view.position[0]) / depth + view.principal_x_px
+    v = view.focal_px * (y - view.position[1]) / depth + view.principal_y_px
+    return u, v
+
+
+def unproject(scene: SceneGeometry, u_px: np.ndarray, v_px: np.ndarray, depth: np.ndarray
+              ) -> tuple[np.ndarray, ...]:  # fmt: skip
+    """World points seen at working-image coordinates (u, v) with the given depth."""
+    f = scene.focal_px
+    return (
+        (u_px - scene.width_px / 2) * depth / f,
+        (v_px - scene.height_px / 2) * depth / f,
+        depth,
+    )

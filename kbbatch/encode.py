@@ -72,8 +72,9 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
     try:
         for frame in frames:
             if frame.shape != (preset.height_px, preset.width_px, 3) or frame.dtype != np.uint8:
+                expected = (preset.height_px, preset.width_px, 3)
                 raise EncodeError(f"frame {count} has shape {frame.shape} {frame.dtype}, "
-                                  f"expected ({preset.height_px}, {preset.width_px}, 3) uint8")  # fmt: skip
+                                  f"expected {expected} uint8")
             process.stdin.write(np.ascontiguousarray(frame).data)
             count += 1
         process.stdin.close()

@@ -121,8 +121,9 @@ def load_preset(name_or_path: str) -> Preset:
     else:
         resource = resources.files("presets") / f"{name_or_path}.toml"
         if not resource.is_file():
-            raise PresetError(f"unknown preset {name_or_path!r}; shipped presets: "
-                              f"{', '.join(builtin_names())}, or give a path to a .toml file")  # fmt: skip
+            shipped = ", ".join(builtin_names())
+            raise PresetError(f"unknown preset {name_or_path!r}; shipped presets: {shipped}, "
+                              "or give a path to a .toml file")
         text = resource.read_text(encoding="utf-8")
         source = f"preset {name_or_path!r}"
     try:

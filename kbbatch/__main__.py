@@ -1,0 +1,3 @@
+from kbbatch.cli import main
+
+main()

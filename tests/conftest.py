@@ -1,0 +1,39 @@
+"""Shared fixtures: the real photos and models in ../shared, skipped with a reason when absent."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kbbatch.presets import load_preset, with_overrides
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+PHOTOS = SHARED / "photos"
+
+
+def shared_photos(count: int) -> list[Path]:
+    if not PHOTOS.is_dir():
+        pytest.skip(f"real photos not found at {PHOTOS} (../shared exists only for developers/CI)")
+    photos = sorted(p for p in PHOTOS.iterdir() if p.suffix.lower() in (".jpg", ".png"))
+    if len(photos) < count:
+        pytest.skip(f"need {count} photos in {PHOTOS}, found {len(photos)}")
+    return photos[:count]
+
+
+@pytest.fixture
+def quick_preset():
+    """A small, short preset so that real clips encode in about a second."""
+    return with_overrides(load_preset("preview"), duration_s=0.6, fps=10.0)
+
+
+def textured_image(height: int, width: int, seed: int = 0) -> np.ndarray:
+    """A smooth but distinctive colour texture (random noise would defeat video codecs)."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float32)
+    channels = []
+    for _ in range(3):
+        fy, fx, phase = rng.uniform(0.02, 0.09, 2).tolist() + [rng.uniform(0, 6.28)]
+        channels.append(127.5 + 120 * np.sin(rows * fy + cols * fx + phase))
+    return np.stack(channels, axis=-1).astype(np.uint8)

@@ -1,0 +1,55 @@
+"""Real photos from ../shared through the whole pipeline and real ffmpeg."""
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+
+from kbbatch.batch import REPORT_NAME, ClipOptions, run_folder
+from kbbatch.encode import decode_frames, probe
+
+from .conftest import shared_photos
+
+
+def test_two_real_photos_and_a_corrupt_one(tmp_path, quick_preset):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    sources = shared_photos(2)
+    for source in sources:
+        shutil.copy(source, folder / source.name)
+    (folder / "corrupt.jpg").write_bytes(b"\xff\xd8\xff\xe0 definitely not a whole jpeg")
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+
+    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
+                        show_progress=False)  # fmt: skip
+
+    assert [r.status for r in report.results].count("done") == 2
+    [failed] = report.failed
+    assert "corrupt.jpg" in failed.error
+    for source in sources:
+        clip = tmp_path / "out" / f"{source.stem}.mp4"
+        info = probe(clip)
+        assert (info.width_px, info.height_px) == (quick_preset.width_px, quick_preset.height_px)
+        frames = list(decode_frames(clip, info.width_px, info.height_px))
+        assert len(frames) == quick_preset.frames_total
+        assert min(f.mean() for f in frames) > 5, "a frame came out black"
+        assert np.abs(frames[0].astype(int) - frames[len(frames) // 2].astype(int)).mean() > 1
+    assert (tmp_path / "out" / REPORT_NAME).is_file()
+    assert not list((tmp_path / "out").glob(".*part*")), "a temporary file was left behind"
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before, "sources changed"
+
+
+def test_cli_exit_code_and_summary(tmp_path):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    [source] = shared_photos(1)
+    shutil.copy(source, folder / source.name)
+    (folder / "bad.png").write_bytes(b"")
+    command = [sys.executable, "-m", "kbbatch", str(folder), "--preset", "preview",
+               "--duration", "0.4", "--fps", "10", "--quiet"]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1
+    assert "1 clip(s) made" in result.stdout
+    assert "bad.png: is empty (0 bytes)" in result.stderr
+    assert (folder / "kenburns" / f"{source.stem}.mp4").is_file()

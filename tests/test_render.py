@@ -1,0 +1,99 @@
+import numpy as np
+
+from kbbatch.camera import SceneGeometry, View, working_view
+from kbbatch.render import back_project, depth_edges, fill_from_background, render, to_uint8
+
+from .conftest import textured_image
+
+H, W = 120, 160
+SCENE = SceneGeometry(W, H, 80.0)
+DISPARITY_SCALE = SCENE.focal_px * 40
+NEAR, FAR = 80.0, 320.0
+
+
+def card_scene():
+    """A near square card (red) in front of a textured far plane."""
+    image = textured_image(H, W, seed=3)
+    image[40:80, 60:100] = (255, 0, 0)
+    depth = np.full((H, W), FAR, np.float32)
+    depth[40:80, 60:100] = NEAR
+    return image, depth
+
+
+def shifted_view(shift_x: float, focal_scale: float = 1.0) -> View:
+    base = working_view(SCENE, (shift_x, 0.0, 0.0))
+    return View(base.position, base.focal_px * focal_scale, base.principal_x_px,
+                base.principal_y_px, W, H)  # fmt: skip
+
+
+def test_fronto_parallel_plane_renders_back_to_input():
+    image = textured_image(H, W)
+    view = working_view(SCENE, (0.0, 0.0, 0.0))
+    cloud = back_project(image, np.full((H, W), FAR, np.float32), view)
+    rendering = render(cloud, view, DISPARITY_SCALE)
+    assert rendering.covered.all()
+    np.testing.assert_array_equal(to_uint8(rendering.colour), image)
+    np.testing.assert_allclose(rendering.depth, FAR, rtol=1e-5)
+
+
+def test_near_card_occludes_far_plane_after_shift():
+    image, depth = card_scene()
+    cloud = back_project(image, depth, working_view(SCENE, (0.0, 0.0, 0.0)))
+    # Camera moves right by 10 units: the card (depth 80, f 80) shifts left by 10 px, the far
+    # plane by 2.5 px.
+    rendering = render(cloud, shifted_view(10.0), DISPARITY_SCALE)
+    colour = to_uint8(rendering.colour)
+    card = colour[45:75, 52:88]
+    assert (card == (255, 0, 0)).all(), "the near card must be drawn over the far plane"
+    np.testing.assert_allclose(rendering.depth[45:75, 52:88], NEAR, rtol=1e-4)
+    # Right of the moved card, the far plane is visible again (or a disocclusion hole).
+    right = rendering.depth[45:75, 95:110]
+    assert np.all(right[rendering.covered[45:75, 95:110]] > 0.9 * FAR)
+
+
+def test_zoom_in_leaves_no_cracks_on_a_continuous_surface():
+    image = textured_image(H, W, seed=5)
+    rows = np.arange(H, dtype=np.float32)[:, None]
+    depth = np.repeat(FAR / (1.0 + rows / H), W, axis=1)  # a slanted, continuous ground
+    cloud = back_project(image, depth, working_view(SCENE, (0.0, 0.0, 0.0)))
+    rendering = render(cloud, shifted_view(0.0, focal_scale=1.25), DISPARITY_SCALE)
+    inner = rendering.covered[2:-2, 2:-2]
+    assert inner.all(), f"{(~inner).sum()} cracks after a 1.25x zoom"
+
+
+def test_depth_edge_points_leave_holes_not_sheets():
+    image, depth = card_scene()
+    view = working_view(SCENE, (0.0, 0.0, 0.0))
+    edges = depth_edges(depth)
+    assert edges[60, 59] and edges[60, 60] and not edges[60, 30]
+    cloud = back_project(image, depth, view, keep=~edges)
+    rendering = render(cloud, shifted_view(10.0), DISPARITY_SCALE)
+    # The card slid left by 10 px: its old right part shows unseen background, a hole.
+    hole = ~rendering.covered[45:75, 88:97]
+    assert hole.mean() > 0.5, "disocclusion must be reported by the coverage mask"
+    between = rendering.covered & (rendering.depth > 1.2 * NEAR) & (rendering.depth < 0.8 * FAR)
+    assert not between.any(), "no point may sit on a rubber sheet between card and plane"
+    # The same cloud with edges kept would stretch a sheet: the test can tell the difference.
+    sheet = render(back_project(image, depth, view), shifted_view(10.0), DISPARITY_SCALE)
+    assert sheet.covered[45:75, 88:97].mean() > rendering.covered[45:75, 88:97].mean()
+
+
+def test_background_fill_uses_the_far_side_of_a_hole():
+    image, depth = card_scene()
+    view = working_view(SCENE, (0.0, 0.0, 0.0))
+    cloud = back_project(image, depth, view, keep=~depth_edges(depth))
+    rendering = render(cloud, shifted_view(10.0), DISPARITY_SCALE)
+    filled = to_uint8(fill_from_background(rendering))
+    hole = ~rendering.covered
+    assert hole.any()
+    red = np.all(filled == (255, 0, 0), axis=-1)
+    assert not (red & hole).any(), "foreground colour bled into a disocclusion"
+
+
+def test_rendering_is_deterministic():
+    image, depth = card_scene()
+    cloud = back_project(image, depth, working_view(SCENE, (0.0, 0.0, 0.0)))
+    first = render(cloud, shifted_view(7.3, 1.1), DISPARITY_SCALE)
+    second = render(cloud, shifted_view(7.3, 1.1), DISPARITY_SCALE)
+    np.testing.assert_array_equal(first.colour, second.colour)
+    np.testing.assert_array_equal(first.weight, second.weight)
