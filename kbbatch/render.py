@@ -106,24 +106,25 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     disparity_scale converts inverse depth into working disparity pixels (f * baseline), so
     the tolerances mean the same at every output size.
     """
-    # One interleaved buffer (red, green, blue, depth, weight, front inverse depth): each
-    # splat touches one cache line instead of four arrays.
-    buffer = np.zeros((view.height_px, view.width_px, _CHANNELS), np.float32)
+    # Interleaved (red, green, blue, weight): each splat touches one 16-byte cell; the nearest
+    # surface's inverse depth lives in its own compact array for the z pass.
+    buffer = np.zeros((view.height_px, view.width_px, 4), np.float32)
+    front = np.zeros((view.height_px, view.width_px), np.float32)
     _render_kernel(
         cloud.x, cloud.y, cloud.z, cloud.colour,
         float(view.position[0]), float(view.position[1]), float(view.position[2]),
         float(view.focal_px), float(view.principal_x_px), float(view.principal_y_px),
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
-        buffer,
+        buffer, front,
     )  # fmt: skip
-    return Rendering(buffer[..., 0:3], buffer[..., _DEPTH], buffer[..., _WEIGHT])
+    weight = buffer[..., _WEIGHT]
+    with np.errstate(divide="ignore"):
+        depth = np.where(weight > 0, 1.0 / front, np.inf).astype(np.float32)
+    return Rendering(buffer[..., 0:3], depth, weight)
 
 
-_CHANNELS = 6
-_DEPTH = 3
-_WEIGHT = 4
-_FRONT = 5
+_WEIGHT = 3
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -141,24 +142,24 @@ def _project(x, y, z, cam_x, cam_y, cam_z, focal, ppx, ppy):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _claim(buffer, yy, xx, w, inv_z):
-    if w > MIN_SPLAT_WEIGHT and inv_z > buffer[yy, xx, _FRONT]:
-        buffer[yy, xx, _FRONT] = inv_z
+def _claim(front, yy, xx, w, inv_z):
+    if w > MIN_SPLAT_WEIGHT and inv_z > front[yy, xx]:
+        front[yy, xx] = inv_z
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _splat(buffer, yy, xx, w, inv_z, depth, r, g, b, soft_inv_z):
-    if w > MIN_SPLAT_WEIGHT and inv_z >= buffer[yy, xx, _FRONT] - soft_inv_z:
+def _splat(buffer, front, yy, xx, w, inv_z, r, g, b, soft_inv_z):
+    if w > MIN_SPLAT_WEIGHT and inv_z >= front[yy, xx] - soft_inv_z:
         buffer[yy, xx, 0] += w * r
         buffer[yy, xx, 1] += w * g
         buffer[yy, xx, 2] += w * b
-        buffer[yy, xx, _DEPTH] += w * depth
         buffer[yy, xx, _WEIGHT] += w
 
 
 @numba.njit(cache=True, nogil=True)
 def _render_kernel(
-    xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z, buffer
+    xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z, buffer,
+    front,
 ):
     height, width = buffer.shape[0], buffer.shape[1]
     n = zs.shape[0]
@@ -173,19 +174,19 @@ def _render_kernel(
         fx = px - x0
         fy = py - y0
         if 0 <= x0 < width - 1 and 0 <= y0 < height - 1:
-            _claim(buffer, y0, x0, (1 - fx) * (1 - fy), inv_z)
-            _claim(buffer, y0, x0 + 1, fx * (1 - fy), inv_z)
-            _claim(buffer, y0 + 1, x0, (1 - fx) * fy, inv_z)
-            _claim(buffer, y0 + 1, x0 + 1, fx * fy, inv_z)
+            _claim(front, y0, x0, (1 - fx) * (1 - fy), inv_z)
+            _claim(front, y0, x0 + 1, fx * (1 - fy), inv_z)
+            _claim(front, y0 + 1, x0, (1 - fx) * fy, inv_z)
+            _claim(front, y0 + 1, x0 + 1, fx * fy, inv_z)
         else:
             for dy in range(2):
                 for dx in range(2):
                     yy, xx = y0 + dy, x0 + dx
                     if 0 <= yy < height and 0 <= xx < width:
                         w = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-                        _claim(buffer, yy, xx, w, inv_z)
+                        _claim(front, yy, xx, w, inv_z)
     # Pass 2: close cracks where background shines through a magnified foreground.
-    _filter_cracks(buffer, crack_inv_z)
+    _filter_cracks(front, crack_inv_z)
     # Pass 3: splat every point that lies on the front surface, weighted bilinearly.
     for i in range(n):
         visible, px, py, inv_z = _project(xs[i], ys[i], zs[i], cam_x, cam_y, cam_z, focal, ppx, ppy)
@@ -195,22 +196,21 @@ def _render_kernel(
         y0 = int(math.floor(py))
         fx = px - x0
         fy = py - y0
-        depth = 1.0 / inv_z
         r = np.float32(colours[i, 0])
         g = np.float32(colours[i, 1])
         b = np.float32(colours[i, 2])
         if 0 <= x0 < width - 1 and 0 <= y0 < height - 1:
-            _splat(buffer, y0, x0, (1 - fx) * (1 - fy), inv_z, depth, r, g, b, soft_inv_z)
-            _splat(buffer, y0, x0 + 1, fx * (1 - fy), inv_z, depth, r, g, b, soft_inv_z)
-            _splat(buffer, y0 + 1, x0, (1 - fx) * fy, inv_z, depth, r, g, b, soft_inv_z)
-            _splat(buffer, y0 + 1, x0 + 1, fx * fy, inv_z, depth, r, g, b, soft_inv_z)
+            _splat(buffer, front, y0, x0, (1 - fx) * (1 - fy), inv_z, r, g, b, soft_inv_z)
+            _splat(buffer, front, y0, x0 + 1, fx * (1 - fy), inv_z, r, g, b, soft_inv_z)
+            _splat(buffer, front, y0 + 1, x0, (1 - fx) * fy, inv_z, r, g, b, soft_inv_z)
+            _splat(buffer, front, y0 + 1, x0 + 1, fx * fy, inv_z, r, g, b, soft_inv_z)
         else:
             for dy in range(2):
                 for dx in range(2):
                     yy, xx = y0 + dy, x0 + dx
                     if 0 <= yy < height and 0 <= xx < width:
                         w = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-                        _splat(buffer, yy, xx, w, inv_z, depth, r, g, b, soft_inv_z)
+                        _splat(buffer, front, yy, xx, w, inv_z, r, g, b, soft_inv_z)
     for yy in range(height):
         for xx in range(width):
             pixel = buffer[yy, xx]
@@ -220,20 +220,18 @@ def _render_kernel(
                 pixel[0] *= scale
                 pixel[1] *= scale
                 pixel[2] *= scale
-                pixel[_DEPTH] *= scale
             else:
                 pixel[0] = 0.0
                 pixel[1] = 0.0
                 pixel[2] = 0.0
-                pixel[_DEPTH] = np.inf
                 pixel[_WEIGHT] = 0.0
 
 
 @numba.njit(cache=True, nogil=True)
-def _filter_cracks(buffer, crack_inv_z):
+def _filter_cracks(front, crack_inv_z):
     """Give a pixel the average inverse depth of two opposite neighbours that are clearly nearer."""
-    height, width = buffer.shape[0], buffer.shape[1]
-    source = buffer[:, :, _FRONT].copy()
+    height, width = front.shape
+    source = front.copy()
     for yy in range(1, height - 1):
         above = source[yy - 1]
         row = source[yy]
@@ -242,13 +240,13 @@ def _filter_cracks(buffer, crack_inv_z):
             threshold = row[xx] + crack_inv_z
             # Opposite neighbour pairs: horizontal, vertical and both diagonals.
             if row[xx - 1] > threshold and row[xx + 1] > threshold:
-                buffer[yy, xx, _FRONT] = 0.5 * (row[xx - 1] + row[xx + 1])
+                front[yy, xx] = 0.5 * (row[xx - 1] + row[xx + 1])
             elif above[xx] > threshold and below[xx] > threshold:
-                buffer[yy, xx, _FRONT] = 0.5 * (above[xx] + below[xx])
+                front[yy, xx] = 0.5 * (above[xx] + below[xx])
             elif above[xx - 1] > threshold and below[xx + 1] > threshold:
-                buffer[yy, xx, _FRONT] = 0.5 * (above[xx - 1] + below[xx + 1])
+                front[yy, xx] = 0.5 * (above[xx - 1] + below[xx + 1])
             elif above[xx + 1] > threshold and below[xx - 1] > threshold:
-                buffer[yy, xx, _FRONT] = 0.5 * (above[xx + 1] + below[xx - 1])
+                front[yy, xx] = 0.5 * (above[xx + 1] + below[xx - 1])
 
 
 def fill_from_background(rendering: Rendering) -> np.ndarray:

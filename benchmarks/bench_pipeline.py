@@ -1,0 +1,107 @@
+"""Whole-clip speed against ffmpeg's own 2D Ken Burns, measured in one run.
+
+    .venv/bin/python benchmarks/bench_pipeline.py [--photo PATH] [--preset slideshow]
+
+Prints per-stage seconds for one photo, frames per second of the renderer at the preset size
+(one thread and all threads, no encoding), the whole 3D clip's wall time, and the wall time of
+ffmpeg's zoompan filter making a palindromic 2D clip of the same size, frame count, fps and
+encoder settings, with the ratio 3D / 2D. Targets (issue 2): >= 25 frames/s at 1920x1080 and a
+ratio <= 1.5.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kbbatch.batch import ClipOptions, make_clip, prepare_scene, render_frame
+from kbbatch.encode import ffmpeg_exe
+from kbbatch.images import read_image
+from kbbatch.presets import Preset, load_preset
+
+SHARED_PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"
+DEFAULT_PHOTO = "33_landscape_sign_in_field.jpg"
+
+
+def zoompan_seconds(photo: Path, preset: Preset, output: Path) -> float:
+    """ffmpeg's 2D Ken Burns: centred zoom in to 1.25 and back, same frames and encoder."""
+    half = preset.frames_forward - 1
+    zoom = f"1+{preset.zoom - 1}*(1-abs(1-on/{half}))"
+    w, h = preset.width_px, preset.height_px
+    filters = (
+        f"crop='min(iw,ih*{w}/{h})':'min(ih,iw*{h}/{w})',scale={w}:{h},"
+        f"zoompan=z='{zoom}':x='iw/2-iw/zoom/2':y='ih/2-ih/zoom/2':d=1:s={w}x{h}:fps={preset.fps}"
+    )
+    command = [
+        ffmpeg_exe(), "-loglevel", "error", "-y", "-loop", "1", "-framerate", str(preset.fps),
+        "-i", str(photo), "-vf", filters, "-frames:v", str(preset.frames_total),
+        "-c:v", preset.codec, "-crf", str(preset.crf), "-pix_fmt", preset.pix_fmt,
+        "-movflags", "+faststart",
+    ]  # fmt: skip
+    if preset.encoder_preset:
+        command += ["-preset", preset.encoder_preset]
+    started = time.perf_counter()
+    subprocess.run([*command, str(output)], check=True)
+    return time.perf_counter() - started
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--photo", type=Path, default=SHARED_PHOTOS / DEFAULT_PHOTO)
+    parser.add_argument("--preset", default="slideshow")
+    parser.add_argument("--frames", type=int, default=30, help="frames timed for frames/s")
+    args = parser.parse_args()
+    if not args.photo.is_file():
+        print(f"photo not found: {args.photo} (../shared is only on developer and CI machines)")
+        return 2
+    preset = load_preset(args.preset)
+    threads = os.cpu_count() or 1
+    options = ClipOptions(threads=threads)
+
+    photo = read_image(args.photo)
+    timings: dict[str, float] = {}
+    prepared = prepare_scene(photo, args.photo, preset, options, timings)
+    render_frame(prepared, preset, 0.5)  # compile the kernels outside the timings
+    times = np.linspace(0, 1, args.frames).tolist()
+
+    started = time.perf_counter()
+    for t in times:
+        render_frame(prepared, preset, t)
+    fps_one = args.frames / (time.perf_counter() - started)
+    from kbbatch.batch import ordered_map
+
+    started = time.perf_counter()
+    for _ in ordered_map(lambda t: render_frame(prepared, preset, t), times, threads):
+        pass
+    fps_all = args.frames / (time.perf_counter() - started)
+
+    with tempfile.TemporaryDirectory() as scratch:
+        result = make_clip(args.photo, Path(scratch) / "3d.mp4", preset, options, False)
+        if result.status != "done":
+            print(result.error)
+            return 1
+        seconds_2d = zoompan_seconds(args.photo, preset, Path(scratch) / "2d.mp4")
+
+    print(f"photo {args.photo.name}, preset {preset.name} {preset.width_px}x{preset.height_px} "
+          f"@ {preset.fps:g} fps, {preset.frames_forward} rendered / {preset.frames_total} "
+          f"encoded frames, {threads} threads, {len(prepared.cloud):,} points")  # fmt: skip
+    print(f"{'stage':<28}{'seconds':>10}")
+    for stage, seconds in result.stage_seconds.items():
+        print(f"{stage:<28}{seconds:>10.2f}")
+    print(f"{'render fps, 1 thread':<28}{fps_one:>10.1f}")
+    print(f"{f'render fps, {threads} threads':<28}{fps_all:>10.1f}")
+    print(f"{'3D clip, whole (s)':<28}{result.seconds:>10.2f}")
+    print(f"{'2D zoompan clip (s)':<28}{seconds_2d:>10.2f}")
+    print(f"{'ratio 3D / 2D':<28}{result.seconds / seconds_2d:>10.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
