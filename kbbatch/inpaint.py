@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from kbbatch import paper
@@ -21,14 +22,18 @@ FOREGROUND_MARGIN = 0.05
 """A pixel beside a hole is foreground when it is this much (relatively) nearer than the
 farthest surface around it; foreground pixels are never used as colour sources."""
 
+EDGE_SNAP_RADIUS_PX = 2
+"""Depth-edge pixels snap to the nearest or farthest depth within this radius (working px)."""
+
 SOURCE_BAND_PX = 7
 """How far around a hole colour sources are screened for foreground, at the working size."""
 
-TELEA_RADIUS_PX = 5
-"""Neighbourhood of OpenCV's Telea inpainting, at the working size."""
+FILL_SMOOTHING_SIGMA_PX = 1.5
+"""The grown fill is softened by a Gaussian of this size, inside the holes only."""
 
 ColourInpainter = Callable[[np.ndarray, np.ndarray], np.ndarray]
-"""(RGB uint8 image, uint8 mask of pixels to fill) -> RGB uint8 image; e.g. an ONNX network."""
+"""(RGB uint8 image, uint8 mask of pixels to fill) -> RGB uint8 image; e.g. an ONNX network.
+It receives the background fill as a starting point, so it refines texture, not geometry."""
 
 
 @dataclass(frozen=True)
@@ -37,8 +42,8 @@ class Extension:
 
     cloud: PointCloud
     added_points: int
-    hole_pixels_photo: int
-    """Pixels left empty at the photo's own view by the removed depth-edge points."""
+    hole_pixels_start: int
+    """Pixels disoccluded at the start view (0 when it is the photo's own view)."""
     hole_pixels_end: int
     """Pixels disoccluded at the overshot end view before the fill."""
 
@@ -67,44 +72,86 @@ def near_side_of_holes(depth: np.ndarray, hole: np.ndarray) -> np.ndarray:
     return near
 
 
-def fill_depth_background(
-    depth: np.ndarray, hole: np.ndarray, blocked: np.ndarray | None = None
-) -> np.ndarray:
-    """Fill holes by growing the farthest source depth inward, one ring at a time.
+def fill_background(
+    colour: np.ndarray, depth: np.ndarray, hole: np.ndarray, blocked: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill holes jointly in colour and depth, growing inward from background sources only.
 
-    Blocked pixels (the near side of a hole border) are never sources, so a hole takes the
-    depth of the surface behind it, not of the object beside it.
+    Each ring of hole pixels takes the mean colour and the farthest depth of its already
+    known neighbours; blocked pixels (the near side of a hole border) are never sources, so
+    the fill continues the surface behind the hole, never the object beside it.
     """
-    sources = ~hole if blocked is None else ~hole & ~blocked
-    filled = np.where(sources, depth, 0.0).astype(np.float32)
-    known = sources.copy()
-    kernel = np.ones((3, 3), np.uint8)
-    for _ in range(max(filled.shape)):
-        reached = cv2.dilate(known.astype(np.uint8), kernel).astype(bool) & hole & ~known
-        if not reached.any():
-            break
-        grown = cv2.dilate(filled, kernel)
-        filled[reached] = grown[reached]
-        known |= reached
-    unreached = hole & ~known
-    if unreached.any():
-        filled[unreached] = float(np.max(filled))
-    return np.where(hole, filled, depth).astype(np.float32)
+    filled_colour = colour.astype(np.float32).copy()
+    filled_depth = depth.astype(np.float32).copy()
+    known = ~hole & ~blocked
+    rows, cols = np.nonzero(hole)
+    _grow_fill(filled_colour, filled_depth, known, rows.astype(np.int32), cols.astype(np.int32))
+    return filled_colour, filled_depth
 
 
-def inpaint_colour(
-    colour: np.ndarray,
-    hole: np.ndarray,
-    blocked: np.ndarray,
-    inpainter: ColourInpainter | None = None,
-) -> np.ndarray:
-    """Fill holes with background colour: blocked (foreground) pixels are hidden first."""
-    mask = (hole | blocked).astype(np.uint8) * 255
-    if inpainter is not None:
-        filled = inpainter(colour, mask)
-    else:
-        filled = cv2.inpaint(colour, mask, TELEA_RADIUS_PX, cv2.INPAINT_TELEA)
-    return np.where(hole[..., None], filled, colour)
+@numba.njit(cache=True, nogil=True)
+def _grow_fill(colour, depth, known, rows, cols):
+    height, width = known.shape
+    pending = np.ones(rows.shape[0], np.bool_)
+    new_colour = np.zeros((rows.shape[0], 3), np.float32)
+    new_depth = np.zeros(rows.shape[0], np.float32)
+    ready = np.zeros(rows.shape[0], np.bool_)
+    remaining = rows.shape[0]
+    while remaining > 0:
+        grown = 0
+        for k in range(rows.shape[0]):
+            ready[k] = False
+            if not pending[k]:
+                continue
+            y, x = rows[k], cols[k]
+            count = 0
+            r = g = b = 0.0
+            far = 0.0
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy, xx = y + dy, x + dx
+                    if 0 <= yy < height and 0 <= xx < width and known[yy, xx]:
+                        count += 1
+                        r += colour[yy, xx, 0]
+                        g += colour[yy, xx, 1]
+                        b += colour[yy, xx, 2]
+                        far = max(far, depth[yy, xx])
+            if count:
+                new_colour[k, 0] = r / count
+                new_colour[k, 1] = g / count
+                new_colour[k, 2] = b / count
+                new_depth[k] = far
+                ready[k] = True
+                grown += 1
+        if grown == 0:
+            break  # holes with no background source at all
+        for k in range(rows.shape[0]):
+            if ready[k]:
+                y, x = rows[k], cols[k]
+                colour[y, x, 0] = new_colour[k, 0]
+                colour[y, x, 1] = new_colour[k, 1]
+                colour[y, x, 2] = new_colour[k, 2]
+                depth[y, x] = new_depth[k]
+                known[y, x] = True
+                pending[k] = False
+        remaining -= grown
+    # A hole fenced in by foreground alone: take the farthest depth seen and mid grey.
+    farthest = 0.0
+    for y in range(height):
+        for x in range(width):
+            if known[y, x] and depth[y, x] > farthest and depth[y, x] < np.inf:
+                farthest = depth[y, x]
+    for k in range(rows.shape[0]):
+        if pending[k]:
+            depth[rows[k], cols[k]] = farthest
+            for c in range(3):
+                colour[rows[k], cols[k], c] = 127.5
+
+
+def smooth_fill(colour: np.ndarray, hole: np.ndarray) -> np.ndarray:
+    """Soften the ring-growth streaks inside holes only (the border colours stay put)."""
+    blurred = cv2.GaussianBlur(colour, (0, 0), FILL_SMOOTHING_SIGMA_PX)
+    return np.where(hole[..., None], blurred, colour)
 
 
 def extend_at_view(
@@ -113,7 +160,6 @@ def extend_at_view(
     disparity_scale: float,
     region: np.ndarray,
     working_scale: float,
-    known_colour: np.ndarray | None = None,
     inpainter: ColourInpainter | None = None,
 ) -> tuple[PointCloud, int]:
     """Render a view, fill its holes inside region, and return the filled pixels as points.
@@ -129,24 +175,21 @@ def extend_at_view(
                           np.empty((0, 3), np.uint8)), 0  # fmt: skip
     height, width = hole.shape
     small_size = (max(1, round(width * working_scale)), max(1, round(height * working_scale)))
-    small_hole = cv2.resize(hole.astype(np.uint8), small_size, interpolation=cv2.INTER_AREA) > 0
-    small_covered = cv2.resize(
-        rendering.covered.astype(np.uint8), small_size, interpolation=cv2.INTER_AREA
-    ).astype(bool) & ~small_hole
+    # A working-size pixel is a hole if any of its view pixels is, so that no source colour
+    # or depth is averaged with empty pixels.
+    uncovered = (~rendering.covered).astype(np.float32)
+    small_hole = cv2.resize(uncovered, small_size, interpolation=cv2.INTER_AREA) > 0
     small_depth = cv2.resize(rendering.depth, small_size, interpolation=cv2.INTER_NEAREST)
-    small_hole = ~small_covered
+    small_colour = cv2.resize(rendering.colour, small_size, interpolation=cv2.INTER_AREA)
     blocked = near_side_of_holes(small_depth, small_hole)
-    small_depth = fill_depth_background(small_depth, small_hole, blocked)
+    small_colour, small_depth = fill_background(small_colour, small_depth, small_hole, blocked)
+    small_colour = smooth_fill(small_colour, small_hole)
+    if inpainter is not None:
+        image = np.clip(small_colour + 0.5, 0, 255).astype(np.uint8)
+        small_colour = inpainter(image, small_hole.astype(np.uint8) * 255).astype(np.float32)
     depth_full = cv2.resize(small_depth, (width, height), interpolation=cv2.INTER_NEAREST)
-    if known_colour is not None:
-        colour_full = known_colour
-    else:
-        small_colour = cv2.resize(
-            np.clip(rendering.colour, 0, 255).astype(np.uint8), small_size,
-            interpolation=cv2.INTER_AREA,
-        )  # fmt: skip
-        small_filled = inpaint_colour(small_colour, small_hole, blocked, inpainter)
-        colour_full = cv2.resize(small_filled, (width, height), interpolation=cv2.INTER_LINEAR)
+    colour_full = cv2.resize(small_colour, (width, height), interpolation=cv2.INTER_LINEAR)
+    colour_full = np.clip(colour_full + 0.5, 0, 255).astype(np.uint8)
     return back_project(colour_full, depth_full, view, keep=hole), hole_count
 
 
@@ -166,6 +209,22 @@ def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray
     return region
 
 
+def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
+    """Depth with every depth-edge pixel moved to the nearer or farther side of its edge.
+
+    Points are splatted independently, so a rubber sheet only comes from in-between depths
+    on a blurred edge; snapping each edge pixel to the side it is closest to (in disparity)
+    removes the sheet while keeping every pixel of the photo, rim colours included.
+    """
+    edges = depth_edges(depth)
+    window = np.ones((2 * EDGE_SNAP_RADIUS_PX + 1,) * 2, np.uint8)
+    nearest = cv2.erode(depth, window)
+    farthest = cv2.dilate(depth, window)
+    to_near = np.abs(1 / depth - 1 / nearest) <= np.abs(1 / depth - 1 / farthest)
+    snapped = np.where(to_near, nearest, farthest)
+    return np.where(edges, snapped, depth).astype(np.float32)
+
+
 def build_extended_cloud(
     photo: np.ndarray,
     depth: np.ndarray,
@@ -173,42 +232,35 @@ def build_extended_cloud(
     scene: SceneGeometry,
     inpainter: ColourInpainter | None = None,
 ) -> Extension:
-    """The photo as a point cloud (edges removed), extended at the start and end views.
+    """The photo as a point cloud (edge depths snapped), extended at the extreme views.
 
     photo is RGB at the cloud density (any size of the working aspect); depth is at the
-    working size. At the photo's own view the removed edge pixels come back with their own
-    colour, pushed to the background depth; at the start view (when it moved) and the
-    overshot end view the disocclusions are inpainted.
+    working size. At the start view (when it is not the photo's own) and at the overshot end
+    view, the disocclusions are filled with background and appended to the cloud.
     """
     cloud_scale = photo.shape[1] / scene.width_px
-    cloud_depth = cv2.resize(depth, (photo.shape[1], photo.shape[0]),
+    snapped = snap_edge_depth(depth)
+    cloud_depth = cv2.resize(snapped, (photo.shape[1], photo.shape[0]),
                              interpolation=cv2.INTER_NEAREST)  # fmt: skip
-    edges_small = depth_edges(depth).astype(np.float32)
-    edges = cv2.resize(edges_small, (photo.shape[1], photo.shape[0]),
-                       interpolation=cv2.INTER_LINEAR) > 0  # fmt: skip
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
-    cloud = back_project(photo, cloud_depth, photo_view, keep=~edges)
+    cloud = back_project(photo, cloud_depth, photo_view)
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)
     end_position = overshoot(
         start_position, camera_position(plan, scene, 1.0), paper.EXTREME_VIEW_OVERSHOOT
     )
-    views: list[tuple[tuple[float, float, float], np.ndarray | None]] = [
-        ((0.0, 0.0, 0.0), photo)
-    ]
+    positions = [end_position]
     if start_position != (0.0, 0.0, 0.0):
-        views.append((start_position, None))
-    views.append((end_position, None))
+        positions.insert(0, start_position)
     added = 0
     holes = []
-    for position, known_colour in views:
+    for position in positions:
         view = working_view(scene, position, cloud_scale)
         points, hole_count = extend_at_view(
-            cloud, view, disparity_scale, region, 1.0 / cloud_scale,
-            known_colour=known_colour, inpainter=inpainter,
-        )  # fmt: skip
+            cloud, view, disparity_scale, region, 1.0 / cloud_scale, inpainter=inpainter
+        )
         holes.append(hole_count)
         added += len(points)
         cloud = cloud.extended(points)
-    return Extension(cloud, added, holes[0], holes[-1])
+    return Extension(cloud, added, sum(holes[:-1]), holes[-1])

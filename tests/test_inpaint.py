@@ -1,0 +1,117 @@
+"""The extreme views are filled once, with background, and every frame comes out complete."""
+
+import numpy as np
+
+from kbbatch import paper
+from kbbatch.batch import PreparedScene, render_frame
+from kbbatch.camera import (
+    Crop,
+    Plan,
+    SceneGeometry,
+    camera_position,
+    depth_from_disparity,
+    nearest_depth,  # fmt: skip
+    output_view,
+    overshoot,
+    working_view,
+)
+from kbbatch.inpaint import (
+    build_extended_cloud,
+    fill_background,
+    near_side_of_holes,
+    snap_edge_depth,
+)
+from kbbatch.presets import load_preset, with_overrides
+from kbbatch.render import back_project, render
+
+from .conftest import textured_image
+
+W, H = 320, 200
+CARD = (slice(60, 140), slice(120, 200))
+
+
+def card_scene():
+    image = textured_image(H, W, seed=7)
+    image[CARD] = (255, 0, 0)
+    disparity = np.full((H, W), 10.0, np.float32)
+    disparity[CARD] = 40.0
+    depth = depth_from_disparity(disparity, paper.focal_px(W))
+    scene = SceneGeometry(W, H, nearest_depth(depth))
+    start = Crop(W / 2, H / 2, 0.9 * W, 0.9 * H)
+    end = Crop(W / 2 + 25, H / 2, 0.9 * W / 1.25, 0.9 * H / 1.25)
+    return image, depth, scene, Plan(start, end)
+
+
+def end_position(scene, plan):
+    return overshoot(camera_position(plan, scene, 0.0), camera_position(plan, scene, 1.0),
+                     paper.EXTREME_VIEW_OVERSHOOT)  # fmt: skip
+
+
+def end_view_rendering(cloud, scene, plan):
+    view = working_view(scene, end_position(scene, plan))
+    return render(cloud, view, scene.focal_px * paper.DISPARITY_MAX_PX)
+
+
+def test_fill_takes_the_far_plane_not_the_card():
+    image, depth, scene, plan = card_scene()
+    raw = back_project(image, snap_edge_depth(depth), working_view(scene, (0.0, 0.0, 0.0)))
+    before = end_view_rendering(raw, scene, plan)
+    hole = ~before.covered
+    hole[:, : W // 3] = False  # the disocclusion beside the card, not the frame border
+    hole[:, 2 * W // 3:] = False
+    assert hole.sum() > 200, "the move must reveal unseen background"
+    extended = build_extended_cloud(image, depth, plan, scene).cloud
+    after = end_view_rendering(extended, scene, plan)
+    assert after.covered[hole].all()
+    far_depth_in_view = float(depth.max()) - end_position(scene, plan)[2]
+    np.testing.assert_allclose(after.depth[hole], far_depth_in_view, rtol=0.02)
+    red = np.all(np.abs(after.colour[hole] - (255, 0, 0)) < 60, axis=-1)
+    assert red.mean() < 0.02, "the fill copied the card's colour"
+
+
+def test_extension_adds_points_only_where_the_extreme_views_had_holes():
+    image, depth, scene, plan = card_scene()
+    extension = build_extended_cloud(image, depth, plan, scene)
+    # The start view is the photo's own (centred widest crop): only the end view adds points,
+    # exactly one per pixel it found empty.
+    assert extension.hole_pixels_start == 0
+    assert extension.added_points == extension.hole_pixels_end > 0
+    assert len(extension.cloud) == W * H + extension.added_points
+    assert extension.added_points < 0.1 * W * H
+    again = build_extended_cloud(image, depth, plan, scene)
+    np.testing.assert_array_equal(extension.cloud.x, again.cloud.x)
+    np.testing.assert_array_equal(extension.cloud.colour, again.cloud.colour)
+
+
+def test_strong_move_leaves_no_empty_pixel_in_any_frame():
+    image, depth, scene, plan = card_scene()
+    preset = with_overrides(load_preset("preview"), width_px=320, height_px=200, fps=10.0,
+                            duration_s=1.0)  # fmt: skip
+    plan = Plan(plan.start, Crop(W / 2 + 40, H / 2 - 15, plan.end.width_px,
+                                 plan.end.height_px))  # fmt: skip
+    cloud = build_extended_cloud(image, depth, plan, scene).cloud
+    prepared = PreparedScene(plan, scene, cloud, "test")
+    disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
+    for t in np.linspace(0, 1, preset.frames_forward):
+        view = output_view(plan, scene, t, preset.width_px, preset.height_px)
+        raw = render(cloud, view, disparity_scale)
+        assert raw.covered.mean() > 0.99, "the extended cloud must cover nearly every pixel"
+        frame = render_frame(prepared, preset, float(t))
+        assert frame.shape == (200, 320, 3)
+        assert (frame.sum(axis=-1) > 0).all(), "an empty (black) pixel reached the output"
+        np.testing.assert_array_equal(frame, render_frame(prepared, preset, float(t)))
+
+
+def test_depth_fill_grows_from_the_background_side_only():
+    depth = np.full((20, 40), 100.0, np.float32)
+    depth[:, :15] = 10.0  # near object on the left
+    hole = np.zeros_like(depth, bool)
+    hole[:, 15:25] = True  # a disocclusion between near object and far wall
+    blocked = near_side_of_holes(np.where(hole, np.inf, depth), hole)
+    assert blocked[:, 14].all() and not blocked[:, 26].any()
+    colour = np.zeros((20, 40, 3), np.float32)
+    colour[:, :15] = (255, 0, 0)
+    colour[:, 25:] = (0, 0, 200)
+    filled_colour, filled_depth = fill_background(colour, np.where(hole, 0, depth), hole, blocked)
+    np.testing.assert_allclose(filled_depth[hole], 100.0)
+    np.testing.assert_allclose(filled_colour[hole], np.broadcast_to((0, 0, 200), (200, 3)))
