@@ -29,7 +29,8 @@ from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.inpaint import build_extended_cloud
 from kbbatch.presets import Preset
-from kbbatch.render import PointCloud, fill_from_background, render, to_uint8
+from kbbatch.render import PointCloud
+from kbbatch.render import render_frame as render_view_frame
 from planners import PlanRequest, get_planner
 
 MAX_POINT_SPACING_PX = 1.8
@@ -127,7 +128,7 @@ def render_frame(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarra
     """One output frame at time t in [0, 1], every pixel filled."""
     view = output_view(prepared.plan, prepared.scene, t, preset.width_px, preset.height_px)
     disparity_scale = prepared.scene.focal_px * paper.DISPARITY_MAX_PX
-    return to_uint8(fill_from_background(render(prepared.cloud, view, disparity_scale)))
+    return render_view_frame(prepared.cloud, view, disparity_scale)
 
 
 def frame_times(preset: Preset) -> list[float]:

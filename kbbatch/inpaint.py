@@ -15,12 +15,15 @@ import numba
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.camera import Plan, SceneGeometry, View, camera_position, overshoot, working_view
+from kbbatch.camera import Crop, Plan, SceneGeometry, View, camera_position, overshoot, working_view
 from kbbatch.render import PointCloud, back_project, depth_edges, render
 
 FOREGROUND_MARGIN = 0.05
 """A pixel beside a hole is foreground when it is this much (relatively) nearer than the
 farthest surface around it; foreground pixels are never used as colour sources."""
+
+SOURCE_MARGIN_FRACTION = 0.05
+"""Photo points this far (fraction of the long side) outside every crop are still kept."""
 
 EDGE_SNAP_RADIUS_PX = 2
 """Depth-edge pixels snap to the nearest or farthest depth within this radius (working px)."""
@@ -209,6 +212,28 @@ def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray
     return region
 
 
+def source_window(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:
+    """Photo pixels (at working size times scale) that some frame may show.
+
+    The nearest surface follows the crops and farther ones drift toward the centred widest
+    crop, so the union of those windows bounds what is seen; the margin covers surfaces
+    nearer than the anchor depth (which move a little more than the crop).
+    """
+    widest_w = max(plan.start.width_px, plan.end.width_px)
+    widest_h = max(plan.start.height_px, plan.end.height_px)
+    windows = [plan.start, plan.end, Crop(scene.width_px / 2, scene.height_px / 2, widest_w,
+                                          widest_h)]  # fmt: skip
+    margin = SOURCE_MARGIN_FRACTION * max(scene.width_px, scene.height_px)
+    left = max(0, int((min(c.left_px for c in windows) - margin) * scale))
+    top = max(0, int((min(c.top_px for c in windows) - margin) * scale))
+    right = int(np.ceil((max(c.right_px for c in windows) + margin) * scale))
+    bottom = int(np.ceil((max(c.bottom_px for c in windows) + margin) * scale))
+    height, width = round(scene.height_px * scale), round(scene.width_px * scale)
+    window = np.zeros((height, width), bool)
+    window[top:bottom, left:right] = True
+    return window
+
+
 def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
     """Depth with every depth-edge pixel moved to the nearer or farther side of its edge.
 
@@ -243,7 +268,8 @@ def build_extended_cloud(
     cloud_depth = cv2.resize(snapped, (photo.shape[1], photo.shape[0]),
                              interpolation=cv2.INTER_NEAREST)  # fmt: skip
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
-    cloud = back_project(photo, cloud_depth, photo_view)
+    cloud = back_project(photo, cloud_depth, photo_view,
+                         keep=source_window(scene, plan, cloud_scale))  # fmt: skip
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)

@@ -1,7 +1,7 @@
 import numpy as np
 
 from kbbatch.camera import SceneGeometry, View, working_view
-from kbbatch.render import back_project, depth_edges, fill_from_background, render, to_uint8
+from kbbatch.render import back_project, depth_edges, render, render_frame, to_uint8
 
 from .conftest import textured_image
 
@@ -83,7 +83,9 @@ def test_background_fill_uses_the_far_side_of_a_hole():
     view = working_view(SCENE, (0.0, 0.0, 0.0))
     cloud = back_project(image, depth, view, keep=~depth_edges(depth))
     rendering = render(cloud, shifted_view(10.0), DISPARITY_SCALE)
-    filled = to_uint8(fill_from_background(rendering))
+    filled = render_frame(cloud, shifted_view(10.0), DISPARITY_SCALE)
+    np.testing.assert_array_equal(filled[rendering.covered],
+                                  to_uint8(rendering.colour)[rendering.covered])
     hole = ~rendering.covered
     assert hole.any()
     red = np.all(filled == (255, 0, 0), axis=-1)
