@@ -24,7 +24,9 @@ from tqdm import tqdm
 from kbbatch import paper
 from kbbatch.camera import Plan, SceneGeometry, depth_from_disparity, nearest_depth, output_view
 from kbbatch.camera import working_size as compute_working_size
-from kbbatch.depth import DepthError, estimate_disparity
+from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
+from kbbatch.depth import cache as depth_cache
+from kbbatch.depth.file import find_depth_file
 from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.inpaint import build_extended_cloud
@@ -47,8 +49,10 @@ CLIP_SUFFIX = ".mp4"
 @dataclass(frozen=True)
 class ClipOptions:
     planner: str = "center"
-    depth: str = "auto"
+    depth: DepthOptions = DepthOptions()
     threads: int = max(1, os.cpu_count() or 1)
+    cache_depth: bool = True
+    save_depth: bool = False
 
 
 @dataclass
@@ -73,6 +77,7 @@ class PreparedScene:
     scene: SceneGeometry
     cloud: PointCloud
     depth_backend: str
+    disparity: np.ndarray  # relative, at the working size
 
 
 def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
@@ -104,7 +109,7 @@ def prepare_scene(
     clock = time.perf_counter()
     width, height = compute_working_size(photo.shape[1], photo.shape[0])
     working = resize_to(photo, width, height)
-    depth_result = estimate_disparity(working, photo_path, options.depth)
+    depth_result = cached_disparity(working, photo_path, options)
     depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
     timings["depth"] = time.perf_counter() - clock
 
@@ -121,7 +126,26 @@ def prepare_scene(
     photo_cloud = resize_to(photo, round(width * scale), round(height * scale))
     extension = build_extended_cloud(photo_cloud, depth, plan, scene)
     timings["inpaint"] = time.perf_counter() - clock
-    return PreparedScene(plan, scene, extension.cloud, depth_result.backend)
+    return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
+                         depth_result.disparity)
+
+
+def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions
+                     ) -> DepthResult:  # fmt: skip
+    """The depth stage, through the on-disk cache when the photo is a file."""
+    if photo_path is None or not options.cache_depth:
+        return estimate_disparity(working, photo_path, options.depth)
+    depth_file = find_depth_file(photo_path)
+    key = depth_cache.cache_key(
+        depth_cache.file_hash(photo_path), options.depth, working.shape[:2],
+        depth_cache.file_hash(depth_file) if depth_file else None,
+    )
+    cached = depth_cache.load(key)
+    if cached is not None and cached.disparity.shape == working.shape[:2]:
+        return cached
+    result = estimate_disparity(working, photo_path, options.depth)
+    depth_cache.store(key, result)
+    return result
 
 
 def render_frame(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
@@ -175,6 +199,18 @@ def ordered_map(function: Callable, items: list, threads: int) -> Iterator:
             yield pending.popleft().result()
 
 
+def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
+    """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
+    from kbbatch.images import write_image
+
+    normalised = disparity / max(float(disparity.max()), 1e-6)
+    stem = clip_path.with_suffix("")
+    write_image(stem.with_name(stem.name + ".disparity.png"),
+                (normalised * 65535 + 0.5).astype(np.uint16))  # fmt: skip
+    preview = cv2.applyColorMap((normalised * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    write_image(stem.with_name(stem.name + ".depth-preview.png"), preview[..., ::-1])
+
+
 def output_names(sources: list[Path]) -> dict[Path, str]:
     """Clip file names: the photo's stem, or its full name where two photos share a stem."""
     stems: dict[str, int] = {}
@@ -207,6 +243,8 @@ def make_clip(
         timings["read"] = time.perf_counter() - clock
         prepared = prepare_scene(photo, source, preset, options, timings)
         result.depth_backend = prepared.depth_backend
+        if options.save_depth:
+            save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)
         clock = time.perf_counter()
         with tqdm(total=preset.frames_forward, desc=f"  frames {source.name}", unit="frame",

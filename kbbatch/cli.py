@@ -9,7 +9,9 @@ from pathlib import Path
 import click
 
 from kbbatch import depth as depth_stage
+from kbbatch import models as model_registry
 from kbbatch.batch import ClipOptions, RunReport, run_folder
+from kbbatch.depth import DepthOptions
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
 from planners import PLANNER_NAMES
 
@@ -52,18 +54,28 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
               help="How the start and end crops are chosen.")
 @click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
               default="auto", show_default=True, help="Where depth comes from.")
+@click.option("--depth-model", type=click.Choice(sorted(
+    n for n, s in model_registry.REGISTRY.items() if s.role == "depth")),
+    help="Depth network for --depth onnx/auto (default: the first one cached).")
+@click.option("--no-adjust", is_flag=True, help="Do not flatten salient objects into cards.")
+@click.option("--no-refine", is_flag=True, help="Plain bilinear upsampling of depth.")
+@click.option("--save-depth", is_flag=True,
+              help="Also write a 16-bit disparity PNG and a coloured preview per clip.")
 @click.option("--duration", type=float, help="Override the preset's forward duration (s).")
 @click.option("--fps", type=float, help="Override the preset's frame rate.")
 @click.option("--threads", type=int, default=ClipOptions().threads, show_default=True,
               help="Frames rendered in parallel.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def render(folder: Path, output: Path | None, preset_name: str, planner: str,
-           depth_backend: str, duration: float | None, fps: float | None, threads: int,
+           depth_backend: str, depth_model: str | None, no_adjust: bool, no_refine: bool,
+           save_depth: bool, duration: float | None, fps: float | None, threads: int,
            quiet: bool) -> None:  # fmt: skip
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
     preset = _load_preset(preset_name, duration, fps)
     output = output or folder / "kenburns"
-    options = ClipOptions(planner=planner, depth=depth_backend, threads=threads)
+    depth = DepthOptions(backend=depth_backend, model=depth_model, adjust=not no_adjust,
+                         refine=not no_refine)  # fmt: skip
+    options = ClipOptions(planner=planner, depth=depth, threads=threads, save_depth=save_depth)
     report = run_folder(folder, output, preset, options, show_progress=not quiet)
     _print_summary(report)
     sys.exit(1 if report.failed else 0)
@@ -90,3 +102,31 @@ def presets() -> None:
         preset = load_preset(preset_name)
         click.echo(f"{preset.name}: {preset.description}")
         click.echo("  " + ", ".join(f"{n}={getattr(preset, n)}" for n in names))
+
+
+@main.group()
+def models() -> None:
+    """The model registry and cache (set KBBATCH_MODELS to use another folder)."""
+
+
+@models.command("list")
+def models_list() -> None:
+    """Registered models, their licence and whether each is cached."""
+    click.echo(f"cache: {model_registry.models_dir()}")
+    for spec in model_registry.REGISTRY.values():
+        cached = "cached" if model_registry.cached_path(spec.name) else "missing"
+        pinned = "sha256 pinned" if spec.sha256 else "no sha256 registered"
+        click.echo(f"{spec.name:<24} {spec.role:<9} {cached:<8} {pinned}; {spec.licence}")
+        click.echo(f"{'':<24} {spec.url or 'no single-file download: place ' + spec.filename}")
+
+
+@models.command("pull")
+@click.argument("name", type=click.Choice(sorted(model_registry.REGISTRY)))
+@click.option("--sha256", help="The checksum you trust, for models without a registered one.")
+def models_pull(name: str, sha256: str | None) -> None:
+    """Download a model into the cache, verifying its sha256."""
+    try:
+        path = model_registry.pull(model_registry.REGISTRY[name], sha256=sha256)
+    except model_registry.ModelError as error:
+        raise click.ClickException(str(error)) from error
+    click.echo(f"{name}: {path}")

@@ -90,7 +90,7 @@ def test_strong_move_leaves_no_empty_pixel_in_any_frame():
     plan = Plan(plan.start, Crop(W / 2 + 40, H / 2 - 15, plan.end.width_px,
                                  plan.end.height_px))  # fmt: skip
     cloud = build_extended_cloud(image, depth, plan, scene).cloud
-    prepared = PreparedScene(plan, scene, cloud, "test")
+    prepared = PreparedScene(plan, scene, cloud, "test", 1.0 / depth)
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     for t in np.linspace(0, 1, preset.frames_forward):
         view = output_view(plan, scene, t, preset.width_px, preset.height_px)

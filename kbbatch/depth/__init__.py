@@ -1,18 +1,23 @@
-"""Depth stage: one interface over the backends that give a relative disparity per photo.
+"""Depth stage: estimate, adjust, refine (paper section 3.1), behind one interface.
 
-A backend returns disparity (larger is nearer, any scale) at the working size; the camera
-stage normalises it as the paper does. `auto` takes a depth file beside the photo when there
-is one, else the best estimator available.
+A backend returns relative disparity (larger is nearer, any scale, any size); the stage then
+refines it to the working size with sharp edges and flattens salient objects into cards. The
+camera stage normalises it as the paper does. `auto` uses a depth file beside the photo, else
+a cached depth network, else the pop-up geometry.
 """
 
 from __future__ import annotations
 
+import functools
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import cv2
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 class DepthError(ValueError):
@@ -21,45 +26,101 @@ class DepthError(ValueError):
 
 @dataclass(frozen=True)
 class DepthResult:
-    disparity: np.ndarray  # (H, W) float32 at the working size, larger is nearer
+    disparity: np.ndarray  # (H, W) float32, larger is nearer
     backend: str
-    source: str  # what it came from: a file path or an estimator name
+    source: str  # what it came from: a file path, a model, a description
+
+
+@dataclass(frozen=True)
+class DepthOptions:
+    backend: str = "auto"
+    model: str | None = None  # a registered depth network for `onnx`
+    adjust: bool = True
+    refine: bool = True
+
+
+class SceneContext:
+    """Per-photo segmentation, computed at most once and only if some step asks for it."""
+
+    def __init__(self, image: np.ndarray) -> None:
+        self.image = image
+
+    @functools.cache  # noqa: B019 - one context per photo, dropped with it
+    def instances(self) -> list:
+        from kbbatch.segment import find_instances
+
+        return find_instances(self.image)
+
+    @functools.cache  # noqa: B019
+    def saliency(self) -> np.ndarray | None:
+        from kbbatch.segment import salient_mask
+
+        return salient_mask(self.image)
 
 
 class DepthBackend(Protocol):
     name: str
 
-    def disparity(self, image: np.ndarray, photo_path: Path | None) -> DepthResult: ...
+    def disparity(self, image: np.ndarray, photo_path: Path | None, context: SceneContext
+                  ) -> DepthResult: ...  # fmt: skip
 
 
-BACKEND_NAMES = ("auto", "file", "ramp")
+BACKEND_NAMES = ("auto", "file", "onnx", "popup", "ramp")
 
 
-def get_backend(name: str, photo_path: Path | None) -> DepthBackend:
+def get_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
     """The backend for a photo: by name, or for `auto` the best one available."""
     from kbbatch.depth.file import FileDepth, find_depth_file
+    from kbbatch.depth.onnx import OnnxDepth, first_cached_model
+    from kbbatch.depth.popup import PopupDepth
     from kbbatch.depth.ramp import RampDepth
 
+    name = options.backend
+    depth_file = find_depth_file(photo_path) if photo_path else None
     if name == "auto":
-        depth_file = find_depth_file(photo_path) if photo_path else None
-        return FileDepth(depth_file) if depth_file else RampDepth()
+        if depth_file:
+            return FileDepth(depth_file)
+        model = options.model or first_cached_model()
+        return OnnxDepth(model) if model else PopupDepth()
     if name == "file":
-        depth_file = find_depth_file(photo_path) if photo_path else None
         if depth_file is None:
             raise DepthError(f"{photo_path}: --depth file needs <stem>.depth.png/.npy or "
                              "<stem>.disparity.png/.npy beside the photo")  # fmt: skip
         return FileDepth(depth_file)
+    if name == "onnx":
+        model = options.model or first_cached_model()
+        if model is None:
+            raise DepthError("no depth network is cached: run `kbbatch models pull "
+                             "depth-anything-v2-small`, or use --depth popup (no network)")
+        return OnnxDepth(model)
+    if name == "popup":
+        return PopupDepth()
     if name == "ramp":
         return RampDepth()
     raise DepthError(f"unknown depth backend {name!r}; available: {', '.join(BACKEND_NAMES)}")
 
 
-def estimate_disparity(image: np.ndarray, photo_path: Path | None, backend: str = "auto"
-                       ) -> DepthResult:  # fmt: skip
-    """Relative disparity at the image's size from the chosen backend."""
-    result = get_backend(backend, photo_path).disparity(image, photo_path)
+def estimate_disparity(image: np.ndarray, photo_path: Path | None,
+                       options: DepthOptions | str = DepthOptions()) -> DepthResult:  # fmt: skip
+    """Relative disparity at the image's size: estimated, refined, adjusted."""
+    from kbbatch.depth.adjust import adjust
+    from kbbatch.depth.refine import refine
+
+    if isinstance(options, str):
+        options = DepthOptions(backend=options)
+    context = SceneContext(image)
+    result = get_backend(options, photo_path).disparity(image, photo_path, context)
     height, width = image.shape[:2]
-    if result.disparity.shape != (height, width):
-        resized = cv2.resize(result.disparity, (width, height), interpolation=cv2.INTER_LINEAR)
-        result = DepthResult(resized.astype(np.float32), result.backend, result.source)
-    return result
+    disparity = result.disparity.astype(np.float32)
+    if disparity.shape != (height, width):
+        if options.refine:
+            disparity = refine(disparity, image)
+        else:
+            disparity = cv2.resize(disparity, (width, height), interpolation=cv2.INTER_LINEAR)
+    # Pop-up cards are already flat and the ramp is a prior with nothing to adjust.
+    if options.adjust and result.backend not in ("popup", "ramp"):
+        instances = context.instances()
+        if instances:
+            disparity = adjust(disparity, instances)
+    log.info("depth from %s (%s)", result.backend, result.source)
+    return DepthResult(disparity, result.backend, result.source)

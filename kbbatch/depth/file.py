@@ -80,7 +80,8 @@ class FileDepth:
     def __init__(self, path: Path) -> None:
         self.path = path
 
-    def disparity(self, image: np.ndarray, photo_path: Path | None) -> DepthResult:
+    def disparity(self, image: np.ndarray, photo_path: Path | None, context: object = None
+                  ) -> DepthResult:  # fmt: skip
         kind = self.path.name.rsplit(".", 2)[-2].lower()
         height, width = image.shape[:2]
         data = load_map(self.path)

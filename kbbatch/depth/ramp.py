@@ -31,6 +31,7 @@ def ground_plane_disparity(height_px: int, width_px: int, horizon_fraction: floa
 class RampDepth:
     name = "ramp"
 
-    def disparity(self, image: np.ndarray, photo_path: Path | None) -> DepthResult:
+    def disparity(self, image: np.ndarray, photo_path: Path | None, context: object = None
+                  ) -> DepthResult:  # fmt: skip
         height, width = image.shape[:2]
         return DepthResult(ground_plane_disparity(height, width), self.name, "ground-plane prior")

@@ -1,0 +1,99 @@
+"""Depth without a network, after the artists' technique the paper describes and "automatic
+photo pop-up": a ground plane receding to a horizon, a far backdrop above it, and every salient
+object an upright frontal card standing where it touches the ground.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from kbbatch.depth import DepthResult, SceneContext
+from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
+
+HORIZON_RANGE = (0.15, 0.8)
+"""The estimated horizon is kept within these fractions of the height, from the top."""
+
+SKY_MIN_FRACTION = 0.05
+"""Below this share of sky-like pixels the horizon falls back to the prior."""
+
+SKY_GRADIENT_MAX = 12.0
+"""Sky is smooth: its grey-level gradient (Sobel, blurred) stays under this."""
+
+CARD_MIN_FRACTION = 0.01
+"""Salient regions smaller than this share of the image do not become cards."""
+
+CONTACT_MARGIN = 0.03
+"""A horizon is kept at least this far (fraction of height) above where objects stand."""
+
+GROUNDED_EXCEPTIONS = ("bird",)
+"""Classes that need not stand on the ground (they do not push the horizon up)."""
+
+
+def sky_mask(image: np.ndarray) -> np.ndarray:
+    """Smooth, bright or blue pixels connected to the top edge."""
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    gradient = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1))
+    gradient = cv2.blur(gradient, (9, 9))
+    red, green, blue = (image[..., c].astype(np.float32) for c in range(3))
+    sky_coloured = (blue >= red) & (blue >= green * 0.9) | (grey > 170)
+    candidate = ((gradient < SKY_GRADIENT_MAX) & sky_coloured).astype(np.uint8)
+    count, labels = cv2.connectedComponents(candidate, connectivity=4)
+    top_labels = np.unique(labels[0][candidate[0] > 0])
+    return np.isin(labels, top_labels[top_labels > 0])
+
+
+def estimate_horizon(image: np.ndarray, contacts: list[float]) -> float:
+    """Horizon height (fraction from the top): the sky's lower boundary, else the prior; kept
+    above where grounded objects stand."""
+    height = image.shape[0]
+    sky = sky_mask(image)
+    horizon = HORIZON_FRACTION
+    if sky.mean() >= SKY_MIN_FRACTION:
+        has_sky = sky.any(axis=0)
+        lowest_sky = height - 1 - np.argmax(sky[::-1], axis=0)
+        horizon = float(np.median(lowest_sky[has_sky])) / height
+    if contacts:
+        horizon = min(horizon, min(contacts) - CONTACT_MARGIN)
+    return float(np.clip(horizon, *HORIZON_RANGE))
+
+
+def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
+    """(mask, grounded) of every object to pop up: instances, else salient-mask components."""
+    instances = context.instances()
+    if instances:
+        return [(i.mask, i.class_name not in GROUNDED_EXCEPTIONS) for i in instances]
+    saliency = context.saliency()
+    if saliency is None:
+        return []
+    binary = (saliency > 0.5).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    minimum = CARD_MIN_FRACTION * binary.size
+    return [(labels == k, True) for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
+
+
+def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> np.ndarray:
+    """Ground plane and backdrop, with each card at the ground's disparity where it stands."""
+    height, width = image.shape[:2]
+    bottoms = [height - 1 - int(np.argmax(mask.any(axis=1)[::-1])) for mask, _ in cards]
+    contacts = [(b + 1) / height for b, (_, grounded) in zip(bottoms, cards, strict=True)
+                if grounded]  # fmt: skip
+    horizon = estimate_horizon(image, contacts)
+    ground = ground_plane_disparity(height, width, horizon)
+    disparity = ground.copy()
+    # Far cards first, so that nearer ones cover them where they overlap.
+    for bottom, (mask, _) in sorted(zip(bottoms, cards, strict=True), key=lambda c: c[0]):
+        disparity[mask] = ground[bottom, 0]
+    return disparity
+
+
+class PopupDepth:
+    name = "popup"
+
+    def disparity(self, image: np.ndarray, photo_path: Path | None, context: SceneContext
+                  ) -> DepthResult:  # fmt: skip
+        cards = salient_cards(context)
+        return DepthResult(popup_disparity(image, cards), self.name,
+                           f"ground plane and {len(cards)} card(s)")  # fmt: skip

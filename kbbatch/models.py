@@ -1,0 +1,203 @@
+"""The model registry (what each network is, where it comes from, how to feed it) and the cache.
+
+Nothing is downloaded on import or implicitly: `kbbatch models pull NAME` is the only way a
+file enters the cache, and a file is kept only when its sha256 matches.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+MODELS_ENV = "KBBATCH_MODELS"
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+class ModelError(RuntimeError):
+    pass
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """One network: identity, provenance and its input/output convention."""
+
+    name: str
+    filename: str
+    role: str  # depth | salient | semantic | detector | inpaint
+    licence: str
+    url: str | None  # None: not published as a single file; place it in the cache by hand
+    sha256: str | None  # None: no checksum known to us; `pull --sha256` pins the one you trust
+    input_size: int  # side of the square input, or the target short side with size_multiple
+    size_multiple: int = 0  # >0: keep the aspect, sides rounded to this multiple
+    scale: float = 1 / 255  # pixel values are multiplied by this before mean/std
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    channels: str = "RGB"
+    layout: str = "NCHW"
+    output: str = ""  # what the first output means
+
+
+REGISTRY: dict[str, ModelSpec] = {
+    spec.name: spec
+    for spec in (
+        ModelSpec(
+            "depth-anything-v2-small", "depth_anything_v2_small.onnx", "depth", "Apache-2.0",
+            "https://huggingface.co/onnx-community/depth-anything-v2-small/resolve/main/onnx/model.onnx",
+            None, input_size=518, size_multiple=14, mean=IMAGENET_MEAN, std=IMAGENET_STD,
+            output="relative disparity (larger is nearer)",
+        ),
+        ModelSpec(
+            "midas-v21-small", "midas_v21_small_256.onnx", "depth", "MIT",
+            "https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx",
+            None, input_size=256, mean=IMAGENET_MEAN, std=IMAGENET_STD,
+            output="relative inverse depth (larger is nearer)",
+        ),
+        ModelSpec(
+            "isnet-dis-medium", "isnet_dis_medium.onnx", "salient",
+            "ISNet/DIS weights, redistributed in the AGPL npm package "
+            "@imgly/background-removal-data 1.4.5",
+            None, "b6e8497ba978a6f5fbb647e419d2696cd80df5a23cb6a8ea532021911bd76acb",
+            input_size=1024, scale=1 / 256, mean=(0.5, 0.5, 0.5),
+            output="salient-object probability 0..1",
+        ),
+        ModelSpec(
+            "deeplabv3-mnv2-pascal", "deeplabv3_mnv2_pascal_257.onnx", "semantic",
+            "Apache-2.0 (TF-Lite DeepLabV3-MobileNetV2, converted)",
+            None, "48a46b346ca7e2e96760b8a10a302046a3b5a9ce55e59d4c659c36d9cbd44118",
+            input_size=257, scale=1 / 127.5, mean=(1.0, 1.0, 1.0), layout="NHWC",
+            output="PASCAL VOC class scores (21)",
+        ),
+        ModelSpec(
+            "yolox-nano", "yolox_nano_coco_416.onnx", "detector", "Apache-2.0 (Megvii YOLOX)",
+            "https://github.com/Megvii-BaseDetection/YOLOX/releases/download/0.1.1rc0/yolox_nano.onnx",
+            "695e750a5d5754bb5a8d5325643b59282191a7e7a564e435a415fd3c578eab14",
+            input_size=416, scale=1.0, channels="BGR",
+            output="COCO boxes, raw grid outputs (80 classes)",
+        ),
+        ModelSpec(
+            "lama", "lama_fp32.onnx", "inpaint", "Apache-2.0", None, None,
+            input_size=512, output="RGB image 0..255 (LaMa / MI-GAN convention: image + mask)",
+        ),
+    )  # fmt: skip
+}
+
+
+def models_dir() -> Path:
+    """The cache folder: $KBBATCH_MODELS, else the user's cache dir."""
+    override = os.environ.get(MODELS_ENV)
+    if override:
+        return Path(override).expanduser()
+    import platformdirs
+
+    return Path(platformdirs.user_cache_dir("kbbatch")) / "models"
+
+
+def cached_path(name: str) -> Path | None:
+    """The cached file of a registered model, or None when it is not in the cache."""
+    spec = REGISTRY[name]
+    path = models_dir() / spec.filename
+    return path if path.is_file() else None
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = None,
+         progress: bool = True) -> Path:  # fmt: skip
+    """Download a model into the cache, keeping it only if its sha256 is the expected one.
+
+    The expected hash is the registry's, or the one given (for models we cannot pin).
+    pooch downloads to a temporary file and moves it into place only when complete.
+    """
+    import pooch
+
+    directory = directory or models_dir()
+    expected = (sha256 or spec.sha256 or "").lower() or None
+    if spec.url is None:
+        raise ModelError(f"{spec.name} has no single-file download; put {spec.filename} "
+                         f"in {directory} yourself")  # fmt: skip
+    directory.mkdir(parents=True, exist_ok=True)
+    try:
+        path = Path(pooch.retrieve(
+            spec.url, known_hash=f"sha256:{expected}" if expected else None,
+            fname=spec.filename, path=directory, progressbar=progress,
+        ))  # fmt: skip
+    except ValueError as error:  # pooch's checksum mismatch
+        raise ModelError(f"{spec.name}: download refused, sha256 mismatch ({error})") from error
+    except Exception as error:
+        raise ModelError(f"{spec.name}: download from {spec.url} failed ({error})") from error
+    if expected is None:
+        actual = sha256_of(path)
+        path.unlink()
+        raise ModelError(
+            f"{spec.name}: no checksum is registered for this file, so it was not kept. Its "
+            f"sha256 is {actual}; if that is the file the publisher lists, run "
+            f"`kbbatch models pull {spec.name} --sha256 {actual}`"
+        )
+    return path
+
+
+@functools.cache
+def _providers() -> list[str]:
+    import onnxruntime
+
+    available = onnxruntime.get_available_providers()
+    preferred = ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    return [p for p in preferred if p in available] or available
+
+
+@functools.cache
+def session(path: Path):
+    """An onnxruntime session for a model file, created once per process."""
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 3
+    return onnxruntime.InferenceSession(str(path), options, providers=_providers())
+
+
+def load(name: str):
+    """The session of a registered, cached model; the error says how to get it."""
+    path = cached_path(name)
+    if path is None:
+        raise ModelError(f"model {name} is not in {models_dir()}; run `kbbatch models pull "
+                         f"{name}` (or set {MODELS_ENV})")  # fmt: skip
+    return session(path)
+
+
+def prepare_input(spec: ModelSpec, image_rgb, size: tuple[int, int] | None = None):
+    """Resize and normalise an RGB uint8 image as the model expects; returns a batch of one."""
+    import cv2
+    import numpy as np
+
+    width, height = size or (spec.input_size, spec.input_size)
+    resized = cv2.resize(image_rgb, (width, height), interpolation=cv2.INTER_AREA
+                         if width < image_rgb.shape[1] else cv2.INTER_LINEAR)  # fmt: skip
+    if spec.channels == "BGR":
+        resized = resized[..., ::-1]
+    data = (resized.astype(np.float32) * spec.scale - np.float32(spec.mean)) / np.float32(spec.std)
+    if spec.layout == "NCHW":
+        data = data.transpose(2, 0, 1)
+    return np.ascontiguousarray(data[None], dtype=np.float32)
+
+
+def input_size_for(spec: ModelSpec, width: int, height: int) -> tuple[int, int]:
+    """The network input size for an image: square, or aspect kept on a size multiple."""
+    if not spec.size_multiple:
+        return spec.input_size, spec.input_size
+    scale = spec.input_size / min(width, height)
+    step = spec.size_multiple
+
+    def rounded(value: float) -> int:
+        return max(step, int(round(value * scale / step)) * step)
+
+    return rounded(width), rounded(height)
