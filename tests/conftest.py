@@ -37,3 +37,9 @@ def textured_image(height: int, width: int, seed: int = 0) -> np.ndarray:
         fy, fx, phase = rng.uniform(0.02, 0.09, 2).tolist() + [rng.uniform(0, 6.28)]
         channels.append(127.5 + 120 * np.sin(rows * fy + cols * fx + phase))
     return np.stack(channels, axis=-1).astype(np.uint8)
+
+
+@pytest.fixture(autouse=True)
+def isolated_depth_cache(tmp_path_factory, monkeypatch):
+    """Tests never read or write the user's depth cache."""
+    monkeypatch.setenv("KBBATCH_CACHE", str(tmp_path_factory.mktemp("depth-cache")))

@@ -1,0 +1,121 @@
+"""Pop-up depth, semantic adjustment, refinement and the depth cache."""
+
+import numpy as np
+import pytest
+
+from kbbatch import paper
+from kbbatch.batch import ClipOptions, cached_disparity
+from kbbatch.depth import cache as depth_cache
+from kbbatch.depth.adjust import adjust
+from kbbatch.depth.popup import estimate_horizon, popup_disparity
+from kbbatch.depth.ramp import ground_plane_disparity
+from kbbatch.depth.refine import refine
+from kbbatch.segment import Instance
+
+from .conftest import SHARED, textured_image
+
+H, W = 240, 360
+
+
+def sky_and_ground(horizon_row: int) -> np.ndarray:
+    image = textured_image(H, W, seed=11)
+    image[:horizon_row] = (110, 160, 230)  # smooth blue sky
+    return image
+
+
+def test_card_stands_on_the_ground_in_front_of_it():
+    image = sky_and_ground(90)
+    card = np.zeros((H, W), bool)
+    card[100:200, 150:210] = True  # stands on row 199
+    disparity = popup_disparity(image, [(card, True)])
+    assert np.unique(disparity[card]).size == 1, "a card has one depth"
+    value = disparity[card][0]
+    ground = ground_plane_disparity(H, W, estimate_horizon(image, [200 / H]))
+    assert value == pytest.approx(ground[199, 0])
+    # Ground behind the card (beside it, higher up in the image) is farther.
+    assert disparity[150, 100] < value and disparity[150, 300] < value
+    # Ground in front of the card (lower in the image) is nearer.
+    assert disparity[230, 100] > value
+
+
+def test_horizon_follows_the_sky_and_stays_above_where_objects_stand():
+    assert estimate_horizon(sky_and_ground(90), []) == pytest.approx(90 / H, abs=0.02)
+    assert estimate_horizon(sky_and_ground(150), [0.5]) <= 0.5 - 0.03 + 1e-9
+    night = np.full((H, W, 3), 20, np.uint8)
+    assert 0.15 <= estimate_horizon(night, []) <= 0.8
+
+
+def test_adjustment_gives_a_person_one_depth_from_its_ground_contact():
+    disparity = ground_plane_disparity(H, W, 0.3) + np.random.default_rng(0).random((H, W)) * 0.01
+    mask = np.zeros((H, W), bool)
+    mask[60:200, 100:160] = True
+    person = Instance("person", 0.9, (100, 60, 160, 200), mask)
+    adjusted = adjust(disparity.astype(np.float32), [person])
+    assert np.unique(adjusted[mask]).size == 1
+    band = disparity[200 - round(paper.GROUND_CONTACT_FRACTION * 140):200, 100:160]
+    assert adjusted[mask][0] == pytest.approx(band.max())
+    np.testing.assert_array_equal(adjusted[~mask], disparity[~mask].astype(np.float32))
+
+
+def edge_width(row: np.ndarray, low: float, high: float) -> int:
+    span = high - low
+    return int(((row > low + 0.05 * span) & (row < high - 0.05 * span)).sum())
+
+
+def test_refinement_keeps_a_step_edge_sharp_where_bilinear_blurs_it():
+    import cv2
+
+    image = textured_image(H, W, seed=2) // 4 + 20
+    image[:, 181:] += 150  # a bright object right of column 181 (not on the coarse grid)
+    disparity = np.where(np.arange(W) > 180, 1.0, 0.2).astype(np.float32)[None].repeat(H, 0)
+    coarse = cv2.resize(disparity, (W // 4, H // 4), interpolation=cv2.INTER_AREA)
+    bilinear = cv2.resize(coarse, (W, H), interpolation=cv2.INTER_LINEAR)
+    refined = refine(coarse, image)
+    row = H // 2
+    assert edge_width(bilinear[row], 0.2, 1.0) >= 3
+    assert edge_width(refined[row], 0.2, 1.0) <= 1
+    assert np.abs(refined[row] - disparity[row]).max() < 1e-6, "the edge lands on the image edge"
+
+
+def test_refinement_copies_no_texture_into_flat_depth():
+    image = textured_image(H, W, seed=4)
+    flat = np.full((H // 4, W // 4), 0.5, np.float32)
+    np.testing.assert_allclose(refine(flat, image), 0.5, atol=1e-6)
+
+
+def test_depth_cache_reuses_and_separates_settings(tmp_path, monkeypatch):
+    import cv2
+
+    monkeypatch.setenv(depth_cache.CACHE_ENV, str(tmp_path / "cache"))
+    photo = tmp_path / "p.png"
+    image = sky_and_ground(90)
+    cv2.imwrite(str(photo), image[..., ::-1])
+    first = cached_disparity(image, photo, ClipOptions())
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 1
+    again = cached_disparity(image, photo, ClipOptions())
+    np.testing.assert_array_equal(first.disparity, again.disparity)
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 1
+    from kbbatch.depth import DepthOptions
+
+    cached_disparity(image, photo, ClipOptions(depth=DepthOptions(backend="ramp")))
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
+
+
+def test_real_models_find_two_people(monkeypatch):
+    models_dir = SHARED / "models"
+    if not (models_dir / "yolox_nano_coco_416.onnx").is_file():
+        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
+    import cv2
+
+    from kbbatch.camera import working_size
+    from kbbatch.images import read_image
+    from kbbatch.segment import find_instances
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
+    photo = read_image(SHARED / "photos" / "03_portrait_two_people_obama_biden.jpg")
+    width, height = working_size(photo.shape[1], photo.shape[0])
+    instances = find_instances(cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA))
+    assert [i.class_name for i in instances] == ["person", "person"]
+    left, right = sorted(instances, key=lambda i: i.box[0])
+    assert left.box[2] <= right.box[0] + 20, "two separate people, not one torn object"
+    assert all(i.mask.sum() > 0.1 * width * height for i in instances)

@@ -1,0 +1,124 @@
+"""Model registry, cache and pull against a real HTTP server on 127.0.0.1."""
+
+import hashlib
+import http.server
+import threading
+from dataclasses import replace
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper
+
+from kbbatch import models
+from kbbatch.depth import DepthOptions, estimate_disparity
+from kbbatch.depth.onnx import OnnxDepth
+
+from .conftest import textured_image
+
+
+def tiny_depth_model() -> bytes:
+    """A graph that returns the channel mean of its input: bright pixels read as near."""
+    graph = helper.make_graph(
+        [helper.make_node("ReduceMean", ["pixel_values"], ["predicted_depth"], axes=[1],
+                          keepdims=0)],
+        "tiny-depth",
+        [helper.make_tensor_value_info("pixel_values", TensorProto.FLOAT, [1, 3, None, None])],
+        [helper.make_tensor_value_info("predicted_depth", TensorProto.FLOAT, [1, None, None])],
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+@pytest.fixture
+def server():
+    """Serves /good (the model), /truncated (promises more bytes than it sends)."""
+    payload = tiny_depth_model()
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(payload)))
+            self.end_headers()
+            body = payload if self.path == "/good" else payload[: len(payload) // 3]
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}", payload
+    httpd.shutdown()
+
+
+def spec_for(url: str, sha256: str | None):
+    return replace(models.REGISTRY["depth-anything-v2-small"], url=url, sha256=sha256)
+
+
+def test_pull_verifies_and_caches(tmp_path, server):
+    base, payload = server
+    good = hashlib.sha256(payload).hexdigest()
+    path = models.pull(spec_for(f"{base}/good", good), tmp_path, progress=False)
+    assert path.read_bytes() == payload
+    assert path.name == "depth_anything_v2_small.onnx"
+
+
+def test_pull_refuses_a_wrong_checksum(tmp_path, server):
+    base, _ = server
+    with pytest.raises(models.ModelError, match="sha256 mismatch"):
+        models.pull(spec_for(f"{base}/good", "0" * 64), tmp_path, progress=False)
+    assert not list(tmp_path.glob("*.onnx"))
+
+
+def test_pull_refuses_a_truncated_download(tmp_path, server):
+    base, payload = server
+    with pytest.raises(models.ModelError):
+        models.pull(spec_for(f"{base}/truncated", hashlib.sha256(payload).hexdigest()),
+                    tmp_path, progress=False)  # fmt: skip
+    assert not list(tmp_path.glob("*.onnx"))
+
+
+def test_unpinned_model_needs_the_users_checksum(tmp_path, server):
+    base, payload = server
+    actual = hashlib.sha256(payload).hexdigest()
+    with pytest.raises(models.ModelError, match=actual):
+        models.pull(spec_for(f"{base}/good", None), tmp_path, progress=False)
+    assert not list(tmp_path.glob("*.onnx"))
+    path = models.pull(spec_for(f"{base}/good", None), tmp_path, sha256=actual, progress=False)
+    assert path.is_file()
+
+
+def test_missing_model_error_names_the_pull_command(tmp_path, monkeypatch):
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    assert models.cached_path("midas-v21-small") is None
+    with pytest.raises(models.ModelError, match="kbbatch models pull midas-v21-small"):
+        models.load("midas-v21-small")
+
+
+def test_onnx_backend_pre_and_post_processing(tmp_path, monkeypatch):
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    (tmp_path / "depth_anything_v2_small.onnx").write_bytes(tiny_depth_model())
+    spec = models.REGISTRY["depth-anything-v2-small"]
+    # Aspect kept, short side 518, sides multiples of 14.
+    width, height = models.input_size_for(spec, 1024, 683)
+    assert (width, height) == (770, 518) and width % 14 == 0  # 776.6 rounded to a multiple
+    batch = models.prepare_input(spec, np.full((10, 20, 3), 255, np.uint8), (28, 14))
+    assert batch.shape == (1, 3, 14, 28)
+    np.testing.assert_allclose(batch[0, :, 0, 0], (1 - np.array(spec.mean)) / spec.std, rtol=1e-5)
+    image = textured_image(120, 180)
+    image[:, :90] = 250  # bright left half: the tiny model calls it near
+    image[:, 90:] = 10
+    result = estimate_disparity(image, None, DepthOptions(backend="auto", adjust=False))
+    assert result.backend == "onnx" and result.source == "depth-anything-v2-small"
+    assert result.disparity.shape == (120, 180)
+    assert result.disparity[:, :80].min() > result.disparity[:, 100:].max()
+    with pytest.raises(models.ModelError, match="constant"):
+        OnnxDepth("depth-anything-v2-small").disparity(np.full((50, 50, 3), 90, np.uint8),
+                                                       None, None)  # fmt: skip
+
+
+def test_tiny_model_is_valid_onnx():
+    onnx.checker.check_model(onnx.load_from_string(tiny_depth_model()))
