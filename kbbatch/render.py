@@ -147,6 +147,13 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
                      np.where(covered, weight, 0.0).astype(np.float32))  # fmt: skip
 
 
+def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
+    """Which pixels of a view the cloud covers (the planner's disocclusion test)."""
+    accumulator, front = _scratch(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, accumulator, front)
+    return accumulator[..., _WEIGHT] > MIN_SPLAT_WEIGHT
+
+
 def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """A finished 8-bit frame: rendered, holes filled from the background side, rounded.
 

@@ -36,9 +36,12 @@ class UnknownPlannerError(ValueError):
 
 def get_planner(name: str) -> Planner:
     """A planner by name."""
+    from planners.auto import AutoPlanner
     from planners.center import CenterPlanner, TwoDPlanner
 
-    known: dict[str, Planner] = {"center": CenterPlanner(), "2d": TwoDPlanner()}
+    known: dict[str, Planner] = {
+        "auto": AutoPlanner(), "center": CenterPlanner(), "2d": TwoDPlanner(),
+    }  # fmt: skip
     if name not in known:
         raise UnknownPlannerError(
             f"unknown planner {name!r}; available: {', '.join(sorted(known))}"
@@ -46,4 +49,4 @@ def get_planner(name: str) -> Planner:
     return known[name]
 
 
-PLANNER_NAMES = ("center", "2d")
+PLANNER_NAMES = ("auto", "center", "2d")
