@@ -14,7 +14,7 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -30,7 +30,8 @@ from kbbatch.depth.file import find_depth_file
 from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.inpaint import build_extended_cloud
-from kbbatch.presets import Preset
+from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
+from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
 from kbbatch.render import PointCloud
 from kbbatch.render import render_frame as render_view_frame
 from planners import PlanRequest, get_planner
@@ -226,22 +227,54 @@ def plan_summary(plan: Plan) -> dict:
             "start": asdict(plan.start), "end": asdict(plan.end)}  # fmt: skip
 
 
+def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOptions
+                ) -> tuple[Preset, ClipOptions]:  # fmt: skip
+    """The preset and options for one photo, with its manifest entry's overrides."""
+    if entry is None:
+        return preset, options
+    data = entry.data
+    try:
+        if "preset" in data:
+            preset = load_preset(data["preset"])
+        preset = with_overrides(preset, duration_s=data.get("duration_s"))
+    except PresetError as error:
+        raise ManifestError(f"{entry.where('preset')}: {error}") from error
+    if "planner" in data:
+        from planners import PLANNER_NAMES
+
+        if data["planner"] not in PLANNER_NAMES:
+            known = ", ".join(PLANNER_NAMES)
+            raise ManifestError(f"{entry.where('planner')}: unknown planner "
+                                f"{data['planner']!r}; available: {known}")
+        options = replace(options, planner=data["planner"])
+    if entry.depth_file is not None:
+        options = replace(options, depth=replace(options.depth, file=str(entry.depth_file)))
+    return preset, options
+
+
 def make_clip(
     source: Path,
     output: Path,
     preset: Preset,
     options: ClipOptions,
     show_progress: bool = True,
+    entry: ManifestEntry | None = None,
 ) -> ClipResult:
     """Render one photo into one clip; failures are returned, never raised."""
     started = time.perf_counter()
     timings: dict[str, float] = {}
     result = ClipResult(str(source), None, "failed", 0.0)
     try:
+        preset, options = apply_entry(entry, preset, options)
         clock = time.perf_counter()
         photo = read_image(source)
         timings["read"] = time.perf_counter() - clock
-        prepared = prepare_scene(photo, source, preset, options, timings)
+        plan = None
+        if entry is not None and entry.has_crops:
+            working_width, _ = compute_working_size(photo.shape[1], photo.shape[0])
+            plan = entry.plan(photo.shape[1], photo.shape[0], working_width, preset.aspect,
+                              preset.easing)  # fmt: skip
+        prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
         if options.save_depth:
             save_depth_images(output, prepared.disparity)
@@ -255,7 +288,7 @@ def make_clip(
         timings["frames+encode"] = time.perf_counter() - clock
         result.output = str(output)
         result.status = "done"
-    except (ImageReadError, DepthError) as error:
+    except (ImageReadError, DepthError, ManifestError) as error:
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
         result.error = f"{source}: {type(error).__name__}: {error}"
@@ -292,16 +325,72 @@ def run_folder(
     preset: Preset,
     options: ClipOptions,
     show_progress: bool = True,
+    manifest: Manifest | None = None,
 ) -> RunReport:
     """Every photo in a folder to a clip in output_folder; the run report is written there."""
     sources = list_images(folder)
     names = output_names(sources)
     results: list[ClipResult] = []
+    if manifest is not None:
+        for name in manifest.missing_images(folder):
+            results.append(ClipResult(str(folder / name), None, "failed", 0.0,
+                                      error=f"{manifest.path}: image {name!r}: no such photo "
+                                      f"in {folder}"))  # fmt: skip
     for source in tqdm(sources, desc="photos", unit="photo", disable=not show_progress):
+        entry = manifest.entry(source.name) if manifest else None
         results.append(make_clip(source, output_folder / names[source], preset, options,
-                                 show_progress))  # fmt: skip
+                                 show_progress, entry))  # fmt: skip
     report = RunReport(str(folder), str(output_folder), preset.name, results)
     output_folder.mkdir(parents=True, exist_ok=True)
     with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
         temp_path.write_text(report.to_json(), encoding="utf-8")
     return report
+
+
+@dataclass
+class PlanResult:
+    source: str
+    status: str
+    error: str | None = None
+    entry: dict | None = None
+    seconds: float = 0.0
+
+
+def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
+                show_progress: bool = True) -> list[PlanResult]:  # fmt: skip
+    """Plan every photo and write the plans as an editable manifest, with previews."""
+    from kbbatch.images import write_image
+    from kbbatch.manifest import plan_to_entry, write_manifest
+    from kbbatch.review import contact_sheet, draw_plan
+
+    preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
+    results: list[PlanResult] = []
+    entries: dict[str, dict] = {}
+    previews = []
+    for source in tqdm(list_images(folder), desc="planning", unit="photo",
+                       disable=not show_progress):  # fmt: skip
+        started = time.perf_counter()
+        try:
+            photo = read_image(source)
+            width, height = compute_working_size(photo.shape[1], photo.shape[0])
+            working = resize_to(photo, width, height)
+            disparity = cached_disparity(working, source, options).disparity
+            depth = depth_from_disparity(disparity, paper.focal_px(max(width, height)))
+            plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
+            entry = plan_to_entry(plan, photo.shape[1], width)
+            entries[source.name] = entry
+            preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
+            write_image(preview_dir / f"{source.stem}.jpg", preview)
+            previews.append(preview)
+            results.append(PlanResult(str(source), "done", entry=entry,
+                                      seconds=time.perf_counter() - started))  # fmt: skip
+        except (ImageReadError, DepthError) as error:
+            results.append(PlanResult(str(source), "failed", error=str(error)))
+        except Exception as error:  # one photo must never stop the batch
+            message = f"{source}: {type(error).__name__}: {error}"
+            results.append(PlanResult(str(source), "failed", error=message))
+    write_manifest(manifest_path, entries)
+    if previews:
+        write_image(manifest_path.with_name(manifest_path.stem + "-contact.jpg"),
+                    contact_sheet(previews))  # fmt: skip
+    return results

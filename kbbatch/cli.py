@@ -10,8 +10,9 @@ import click
 
 from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
-from kbbatch.batch import ClipOptions, RunReport, run_folder
+from kbbatch.batch import ClipOptions, RunReport, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
+from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
 from planners import PLANNER_NAMES
 
@@ -50,8 +51,10 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
               help="Output folder (default: FOLDER/kenburns).")
 @click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True,
               help="Preset name or path to a .toml file (see `kbbatch presets`).")
-@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="center", show_default=True,
+@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True,
               help="How the start and end crops are chosen.")
+@click.option("--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False,
+              path_type=Path), help="JSON manifest of per-image crops and overrides.")
 @click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
               default="auto", show_default=True, help="Where depth comes from.")
 @click.option("--depth-model", type=click.Choice(sorted(
@@ -67,18 +70,56 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
               help="Frames rendered in parallel.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def render(folder: Path, output: Path | None, preset_name: str, planner: str,
-           depth_backend: str, depth_model: str | None, no_adjust: bool, no_refine: bool,
-           save_depth: bool, duration: float | None, fps: float | None, threads: int,
-           quiet: bool) -> None:  # fmt: skip
+           manifest_path: Path | None, depth_backend: str, depth_model: str | None,
+           no_adjust: bool, no_refine: bool, save_depth: bool, duration: float | None,
+           fps: float | None, threads: int, quiet: bool) -> None:  # fmt: skip
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
     preset = _load_preset(preset_name, duration, fps)
     output = output or folder / "kenburns"
     depth = DepthOptions(backend=depth_backend, model=depth_model, adjust=not no_adjust,
                          refine=not no_refine)  # fmt: skip
     options = ClipOptions(planner=planner, depth=depth, threads=threads, save_depth=save_depth)
-    report = run_folder(folder, output, preset, options, show_progress=not quiet)
+    manifest = _load_manifest(manifest_path)
+    report = run_folder(folder, output, preset, options, show_progress=not quiet,
+                        manifest=manifest)
     _print_summary(report)
     sys.exit(1 if report.failed else 0)
+
+
+def _load_manifest(path: Path | None):
+    if path is None:
+        return None
+    try:
+        return load_manifest(path)
+    except ManifestError as error:
+        raise click.BadParameter(str(error), param_hint="--manifest") from error
+
+
+@main.command()
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("-o", "--output", "manifest_path", type=click.Path(dir_okay=False, path_type=Path),
+              default=Path("manifest.json"), show_default=True, help="Manifest to write.")
+@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True)
+@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True)
+@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
+              default="auto", show_default=True)
+@click.option("--quiet", is_flag=True)
+def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, depth_backend: str,
+         quiet: bool) -> None:  # fmt: skip
+    """Plan every photo in FOLDER and write an editable manifest with preview pictures.
+
+    Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`.
+    """
+    preset = _load_preset(preset_name, None, None)
+    options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
+    results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
+    done = [r for r in results if r.status == "done"]
+    click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
+               f"{manifest_path.with_name(manifest_path.stem + '-previews')}")  # fmt: skip
+    for result in results:
+        if result.status != "done":
+            click.echo(f"FAILED {result.error}", err=True)
+    sys.exit(1 if len(done) < len(results) else 0)
 
 
 def _print_summary(report: RunReport) -> None:

@@ -37,6 +37,7 @@ class DepthOptions:
     model: str | None = None  # a registered depth network for `onnx`
     adjust: bool = True
     refine: bool = True
+    file: str | None = None  # a depth or disparity map named for this photo (manifest)
 
 
 class SceneContext:
@@ -76,6 +77,8 @@ def get_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
     from kbbatch.depth.ramp import RampDepth
 
     name = options.backend
+    if options.file and name in ("auto", "file"):
+        return FileDepth(Path(options.file))
     depth_file = find_depth_file(photo_path) if photo_path else None
     if name == "auto":
         if depth_file:

@@ -82,7 +82,10 @@ class FileDepth:
 
     def disparity(self, image: np.ndarray, photo_path: Path | None, context: object = None
                   ) -> DepthResult:  # fmt: skip
-        kind = self.path.name.rsplit(".", 2)[-2].lower()
+        if not self.path.is_file():
+            raise DepthError(f"{self.path}: depth file not found")
+        parts = self.path.name.lower().split(".")
+        kind = "disparity" if "disparity" in parts[1:-1] else "depth"
         height, width = image.shape[:2]
         data = load_map(self.path)
         return DepthResult(disparity_from_map(data, kind, self.path, height, width), self.name,

@@ -1,0 +1,136 @@
+"""The JSON manifest: per-image crops (the paper's interactive mode, offline) and overrides.
+
+Validated against the JSON Schema shipped beside this module; every error names the manifest,
+the image and the field.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from kbbatch.camera import Crop, Plan
+
+ASPECT_TOLERANCE = 0.02
+"""A crop's height may differ from the output aspect's by this fraction (rounding)."""
+
+
+class ManifestError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class ManifestEntry:
+    image: str
+    data: dict[str, Any]
+    manifest: Path
+
+    def where(self, field: str) -> str:
+        return f"{self.manifest}: image {self.image!r}: field '{field}'"
+
+    @property
+    def has_crops(self) -> bool:
+        return "start" in self.data
+
+    @property
+    def depth_file(self) -> Path | None:
+        depth = self.data.get("depth")
+        return (self.manifest.parent / depth).resolve() if depth else None
+
+    def plan(self, source_width_px: int, source_height_px: int, working_width_px: int,
+             aspect: float, easing: str) -> Plan:  # fmt: skip
+        """The entry's crops as a plan in working pixels, checked against the photo."""
+        to_working = working_width_px / source_width_px
+        crops = []
+        for field in ("start", "end"):
+            crop = self.data[field]
+            if self.data.get("units", "px") == "fraction":
+                scale_x, scale_y = source_width_px, source_height_px
+            else:
+                scale_x = scale_y = 1.0
+            width = crop["width"] * scale_x
+            height = crop["height"] * scale_y if "height" in crop else width / aspect
+            if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
+                raise ManifestError(f"{self.where(field)}: aspect {width / height:.3f} differs "
+                                    f"from the output's {aspect:.3f}")  # fmt: skip
+            source_crop = Crop(crop["center_x"] * scale_x, crop["center_y"] * scale_y, width,
+                               height)  # fmt: skip
+            if not source_crop.inside(source_width_px, source_height_px, tolerance_px=0.5):
+                size = f"{source_width_px}x{source_height_px}"
+                raise ManifestError(f"{self.where(field)}: crop {_describe(source_crop)} lies "
+                                    f"outside the {size} photo")
+            crops.append(source_crop.scaled(to_working))
+        return Plan(crops[0], crops[1], easing=self.data.get("easing", easing),
+                    planner="manifest")  # fmt: skip
+
+
+def _describe(crop: Crop) -> str:
+    return (f"[{crop.left_px:.0f}, {crop.top_px:.0f}, {crop.right_px:.0f}, "
+            f"{crop.bottom_px:.0f}]")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Manifest:
+    path: Path
+    entries: dict[str, ManifestEntry]
+
+    def entry(self, image_name: str) -> ManifestEntry | None:
+        return self.entries.get(image_name)
+
+    def missing_images(self, folder: Path) -> list[str]:
+        return sorted(name for name in self.entries if not (folder / name).is_file())
+
+
+def schema() -> dict[str, Any]:
+    return json.loads(resources.files("kbbatch").joinpath("manifest.schema.json").read_text())
+
+
+def load_manifest(path: Path) -> Manifest:
+    """Read and validate a manifest; raises ManifestError naming the file, image and field."""
+    import jsonschema
+
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except OSError as error:
+        raise ManifestError(f"{path}: cannot be read ({error.strerror})") from error
+    except json.JSONDecodeError as error:
+        raise ManifestError(f"{path}: malformed JSON at line {error.lineno} column "
+                            f"{error.colno}: {error.msg}") from error  # fmt: skip
+    validator = jsonschema.Draft202012Validator(schema())
+    errors = sorted(validator.iter_errors(data), key=lambda e: list(e.absolute_path))
+    if errors:
+        error = errors[0]
+        location = list(error.absolute_path)
+        if len(location) >= 2 and location[0] == "images":
+            field = ".".join(str(p) for p in location[2:]) or "(entry)"
+            where = f"image {location[1]!r}: field '{field}'"
+        else:
+            where = f"field '{'.'.join(str(p) for p in location) or '(top level)'}'"
+        raise ManifestError(f"{path}: {where}: {error.message}")
+    entries = {name: ManifestEntry(name, entry, Path(path)) for name, entry in
+               data["images"].items()}  # fmt: skip
+    return Manifest(Path(path), entries)
+
+
+def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> dict[str, Any]:
+    """A plan as a manifest entry in source pixels (what `kbbatch plan` writes)."""
+    to_source = source_width_px / working_width_px
+
+    def crop(c: Crop) -> dict[str, float]:
+        s = c.scaled(to_source)
+        return {"center_x": round(s.center_x_px, 2), "center_y": round(s.center_y_px, 2),
+                "width": round(s.width_px, 2), "height": round(s.height_px, 2)}  # fmt: skip
+
+    return {"units": "px", "start": crop(plan.start), "end": crop(plan.end),
+            "easing": plan.easing}  # fmt: skip
+
+
+def write_manifest(path: Path, entries: dict[str, dict[str, Any]]) -> None:
+    from kbbatch.images import atomic_output
+
+    text = json.dumps({"version": 1, "images": entries}, indent=2)
+    with atomic_output(Path(path), ".json") as temp_path:
+        temp_path.write_text(text + "\n", encoding="utf-8")
