@@ -1,0 +1,79 @@
+"""Planner quality and speed over ../shared/photos.
+
+    KBBATCH_MODELS=../shared/models .venv/bin/python benchmarks/bench_planners.py
+
+Per photo: planning seconds of `auto`, and the disoccluded fraction of the (unfilled) end view
+for auto, center, and the reference's objective alone (minimum disocclusion, no saliency or
+motion terms). Depth is the default backend's (auto), computed once per photo.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kbbatch import paper
+from kbbatch.batch import ClipOptions, cached_disparity, resize_to
+from kbbatch.camera import depth_from_disparity, working_size
+from kbbatch.images import list_images, read_image
+from kbbatch.presets import load_preset
+from planners import PlanRequest, get_planner
+from planners.auto import AutoPlanner, score_candidates
+
+PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"
+
+
+def end_disocclusion(request: PlanRequest, crop) -> float:
+    _, candidates = score_candidates(request, use_saliency=False, use_motion=False)
+    key = (round(crop.center_x_px, 6), round(crop.center_y_px, 6))
+    for candidate in candidates:
+        if (round(candidate.crop.center_x_px, 6), round(candidate.crop.center_y_px, 6)) == key:
+            return candidate.disoccluded
+    return float("nan")
+
+
+def main() -> int:
+    if not PHOTOS.is_dir():
+        print(f"photos not found at {PHOTOS} (../shared is developer/CI only)")
+        return 2
+    preset = load_preset(sys.argv[1] if len(sys.argv) > 1 else "slideshow")
+    planners = {
+        "auto": get_planner("auto"),
+        "center": get_planner("center"),
+        "reference objective": AutoPlanner(use_saliency=False, use_motion=False),
+    }
+    print(f"preset {preset.name}; disoccluded fraction of the end view (lower is better)")
+    print(f"{'photo':<42}{'auto s':>8}{'auto':>9}{'center':>9}{'reference':>11}")
+    rows = []
+    for photo in list_images(PHOTOS):
+        image = read_image(photo)
+        width, height = working_size(image.shape[1], image.shape[0])
+        working = resize_to(image, width, height)
+        disparity = cached_disparity(working, photo, ClipOptions()).disparity
+        depth = depth_from_disparity(disparity, paper.focal_px(max(width, height)))
+        request = PlanRequest(working, depth, preset)
+        values, seconds = [], 0.0
+        for name, planner in planners.items():
+            started = time.perf_counter()
+            plan = planner.plan(request)
+            if name == "auto":
+                seconds = time.perf_counter() - started
+            values.append(end_disocclusion(request, plan.end))
+        rows.append([seconds, *values])
+        print(f"{photo.name[:41]:<42}{seconds:>8.2f}" + "".join(
+            f"{v:>9.4f}" if i < 2 else f"{v:>11.4f}" for i, v in enumerate(values)))  # fmt: skip
+    table = np.array(rows)
+    auto_better = int(np.sum(table[:, 1] < table[:, 2]))
+    auto_tied = int(np.sum(table[:, 1] == table[:, 2]))
+    print(f"{'mean':<42}{table[:, 0].mean():>8.2f}{table[:, 1].mean():>9.4f}"
+          f"{table[:, 2].mean():>9.4f}{table[:, 3].mean():>11.4f}")  # fmt: skip
+    print(f"auto reveals less than center on {auto_better} of {len(rows)} photos "
+          f"(tied on {auto_tied}); total planning {table[:, 0].sum():.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
