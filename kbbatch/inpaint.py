@@ -22,6 +22,9 @@ FOREGROUND_MARGIN = 0.05
 """A pixel beside a hole is foreground when it is this much (relatively) nearer than the
 farthest surface around it; foreground pixels are never used as colour sources."""
 
+INTERMEDIATE_TIMES = (0.5, 0.25, 0.75)
+"""Times inside the move that are filled too, after the extreme views (once per clip)."""
+
 SOURCE_MARGIN_FRACTION = 0.05
 """Photo points this far (fraction of the long side) outside every crop are still kept."""
 
@@ -49,6 +52,8 @@ class Extension:
     """Pixels disoccluded at the start view (0 when it is the photo's own view)."""
     hole_pixels_end: int
     """Pixels disoccluded at the overshot end view before the fill."""
+    hole_pixels_per_view: tuple[int, ...]
+    """Pixels filled at each view, in the order filled (start, end, then inside the move)."""
 
 
 def near_side_of_holes(depth: np.ndarray, hole: np.ndarray) -> np.ndarray:
@@ -276,7 +281,9 @@ def build_extended_cloud(
     end_position = overshoot(
         start_position, camera_position(plan, scene, 1.0), paper.EXTREME_VIEW_OVERSHOOT
     )
-    positions = [end_position]
+    # The end view first (it reveals the most), then views inside the move: a lateral move
+    # can reveal background mid-way that the dolly covers again by the end.
+    positions = [end_position] + [camera_position(plan, scene, t) for t in INTERMEDIATE_TIMES]
     if start_position != (0.0, 0.0, 0.0):
         positions.insert(0, start_position)
     added = 0
@@ -289,4 +296,5 @@ def build_extended_cloud(
         holes.append(hole_count)
         added += len(points)
         cloud = cloud.extended(points)
-    return Extension(cloud, added, sum(holes[:-1]), holes[-1])
+    end_index = 1 if start_position != (0.0, 0.0, 0.0) else 0
+    return Extension(cloud, added, sum(holes[:end_index]), holes[end_index], tuple(holes))

@@ -72,10 +72,11 @@ def test_fill_takes_the_far_plane_not_the_card():
 def test_extension_adds_points_only_where_the_extreme_views_had_holes():
     image, depth, scene, plan = card_scene()
     extension = build_extended_cloud(image, depth, plan, scene)
-    # The start view is the photo's own (centred widest crop): only the end view adds points,
-    # exactly one per pixel it found empty.
+    # The start view is the photo's own (centred widest crop): the end view and the views
+    # inside the move add exactly one point per pixel they found empty, and nothing else.
     assert extension.hole_pixels_start == 0
-    assert extension.added_points == extension.hole_pixels_end > 0
+    assert extension.hole_pixels_end > 0
+    assert extension.added_points == sum(extension.hole_pixels_per_view)
     assert len(extension.cloud) == W * H + extension.added_points
     assert extension.added_points < 0.1 * W * H
     again = build_extended_cloud(image, depth, plan, scene)
