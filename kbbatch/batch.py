@@ -29,7 +29,7 @@ from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.file import find_depth_file
 from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
-from kbbatch.inpaint import build_extended_cloud
+from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
 from kbbatch.render import PointCloud
@@ -125,7 +125,7 @@ def prepare_scene(
     clock = time.perf_counter()
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
     photo_cloud = resize_to(photo, round(width * scale), round(height * scale))
-    extension = build_extended_cloud(photo_cloud, depth, plan, scene)
+    extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
                          depth_result.disparity)

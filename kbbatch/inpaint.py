@@ -194,7 +194,8 @@ def extend_at_view(
     small_colour = smooth_fill(small_colour, small_hole)
     if inpainter is not None:
         image = np.clip(small_colour + 0.5, 0, 255).astype(np.uint8)
-        small_colour = inpainter(image, small_hole.astype(np.uint8) * 255).astype(np.float32)
+        mask = (small_hole | blocked).astype(np.uint8) * 255
+        small_colour = inpainter(image, mask).astype(np.float32)
     depth_full = cv2.resize(small_depth, (width, height), interpolation=cv2.INTER_NEAREST)
     colour_full = cv2.resize(small_colour, (width, height), interpolation=cv2.INTER_LINEAR)
     colour_full = np.clip(colour_full + 0.5, 0, 255).astype(np.uint8)
@@ -298,3 +299,42 @@ def build_extended_cloud(
         cloud = cloud.extended(points)
     end_index = 1 if start_position != (0.0, 0.0, 0.0) else 0
     return Extension(cloud, added, sum(holes[:end_index]), holes[end_index], tuple(holes))
+
+
+class OnnxInpainter:
+    """A colour inpainting network with the LaMa / MI-GAN convention (image + mask in, image out).
+
+    Inputs by position: RGB image (1, 3, S, S) in 0..1 and mask (1, 1, S, S), 1 where to fill;
+    the output is RGB in 0..1 or 0..255. It sees our background fill as its starting point,
+    with the foreground rim beside each hole masked too, so it refines texture, not geometry.
+    """
+
+    def __init__(self, model: str = "lama") -> None:
+        from kbbatch import models
+
+        self.spec = models.REGISTRY[model]
+        self.session = models.load(model)
+
+    def __call__(self, image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        size = self.spec.input_size
+        height, width = image.shape[:2]
+        small = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+        small_mask = cv2.resize(mask, (size, size), interpolation=cv2.INTER_NEAREST) > 0
+        inputs = self.session.get_inputs()
+        feed = {
+            inputs[0].name: (small.astype(np.float32) / 255).transpose(2, 0, 1)[None],
+            inputs[1].name: small_mask.astype(np.float32)[None, None],
+        }
+        output = self.session.run(None, feed)[0][0].transpose(1, 2, 0)
+        if float(output.max()) <= 1.5:
+            output = output * 255
+        filled = cv2.resize(np.clip(output, 0, 255).astype(np.float32), (width, height),
+                            interpolation=cv2.INTER_LINEAR)  # fmt: skip
+        return np.where(mask[..., None] > 0, filled, image.astype(np.float32))
+
+
+def colour_inpainter() -> ColourInpainter | None:
+    """The registered colour network when it is cached, else None (the classical fill)."""
+    from kbbatch import models
+
+    return OnnxInpainter() if models.cached_path("lama") else None

@@ -1,5 +1,6 @@
 """The extreme views are filled once, with background, and every frame comes out complete."""
 
+import cv2
 import numpy as np
 
 from kbbatch import paper
@@ -116,3 +117,49 @@ def test_depth_fill_grows_from_the_background_side_only():
     filled_colour, filled_depth = fill_background(colour, np.where(hole, 0, depth), hole, blocked)
     np.testing.assert_allclose(filled_depth[hole], 100.0)
     np.testing.assert_allclose(filled_colour[hole], np.broadcast_to((0, 0, 200), (200, 3)))
+
+
+def tiny_inpainting_model() -> bytes:
+    """LaMa convention: out = image * (1 - mask) + mask * (0.2, 0.4, 0.6), in 0..1."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    colour = numpy_helper.from_array(np.array([0.2, 0.4, 0.6], np.float32).reshape(1, 3, 1, 1),
+                                     "colour")  # fmt: skip
+    one = numpy_helper.from_array(np.array(1.0, np.float32), "one")
+    nodes = [
+        helper.make_node("Sub", ["one", "mask"], ["keep"]),
+        helper.make_node("Mul", ["image", "keep"], ["kept"]),
+        helper.make_node("Mul", ["mask", "colour"], ["fill"]),
+        helper.make_node("Add", ["kept", "fill"], ["output"]),
+    ]
+    graph = helper.make_graph(
+        nodes, "tiny-inpaint",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, 512, 512]),
+         helper.make_tensor_value_info("mask", TensorProto.FLOAT, [1, 1, 512, 512])],
+        [helper.make_tensor_value_info("output", TensorProto.FLOAT, [1, 3, 512, 512])],
+        initializer=[colour, one],
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def test_cached_colour_network_fills_the_holes(tmp_path, monkeypatch):
+    from kbbatch.inpaint import colour_inpainter
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(tmp_path))
+    assert colour_inpainter() is None, "no network cached: the classical fill is used"
+    (tmp_path / "lama_fp32.onnx").write_bytes(tiny_inpainting_model())
+    inpainter = colour_inpainter()
+    assert inpainter is not None
+    image, depth, scene, plan = card_scene()
+    extended = build_extended_cloud(image, depth, plan, scene, inpainter).cloud
+    plain = back_project(image, snap_edge_depth(depth), working_view(scene, (0.0, 0.0, 0.0)))
+    before = end_view_rendering(plain, scene, plan)
+    after = end_view_rendering(extended, scene, plan)
+    hole = ~before.covered
+    hole[:, : W // 3] = False
+    hole[:, 2 * W // 3:] = False
+    inner = hole & (cv2.erode(hole.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0)
+    assert inner.sum() > 50
+    np.testing.assert_allclose(after.colour[inner].mean(axis=0), (51, 102, 153), atol=8)
