@@ -307,7 +307,7 @@ class RunReport:
 
     @property
     def failed(self) -> list[ClipResult]:
-        return [r for r in self.results if r.status != "done"]
+        return [r for r in self.results if r.status == "failed"]
 
     def to_json(self) -> str:
         return json.dumps(
@@ -319,6 +319,29 @@ class RunReport:
 REPORT_NAME = "kbbatch-report.json"
 
 
+class OutputFolderError(OSError):
+    pass
+
+
+def check_writable(folder: Path) -> None:
+    """Fail early, with the reason, when clips could never be written to a folder."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".kbbatch-write-test-"):
+            pass
+    except OSError as error:
+        raise OutputFolderError(f"{folder}: output folder is not writable "
+                                f"({error.strerror or error})") from error  # fmt: skip
+
+
+def clip_settings(preset: Preset, options: ClipOptions, entry: ManifestEntry | None) -> str:
+    """What shapes a clip besides the photo (threads excluded: output does not depend on them)."""
+    from kbbatch.journal import settings_fingerprint
+
+    return settings_fingerprint(asdict(preset), options.planner, asdict(options.depth),
+                                entry.data if entry else None)  # fmt: skip
+
+
 def run_folder(
     folder: Path,
     output_folder: Path,
@@ -326,8 +349,18 @@ def run_folder(
     options: ClipOptions,
     show_progress: bool = True,
     manifest: Manifest | None = None,
+    force: bool = False,
+    fail_fast: bool = False,
 ) -> RunReport:
-    """Every photo in a folder to a clip in output_folder; the run report is written there."""
+    """Every photo in a folder to a clip in output_folder; the run report is written there.
+
+    Clips that are complete and up to date (same photo, same settings) are skipped unless
+    force; the journal in the output folder remembers what was made with what.
+    """
+    from kbbatch.journal import Journal, source_fingerprint
+
+    check_writable(output_folder)
+    journal = Journal(output_folder)
     sources = list_images(folder)
     names = output_names(sources)
     results: list[ClipResult] = []
@@ -336,16 +369,28 @@ def run_folder(
             results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                       error=f"{manifest.path}: image {name!r}: no such photo "
                                       f"in {folder}"))  # fmt: skip
-    for source in tqdm(sources, desc="photos", unit="photo", disable=not show_progress):
-        entry = manifest.entry(source.name) if manifest else None
-        results.append(make_clip(source, output_folder / names[source], preset, options,
-                                 show_progress, entry))  # fmt: skip
+    try:
+        for source in tqdm(sources, desc="photos", unit="photo", disable=not show_progress):
+            entry = manifest.entry(source.name) if manifest else None
+            output = output_folder / names[source]
+            fingerprint = source_fingerprint(source)
+            settings = clip_settings(preset, options, entry)
+            if not force and journal.is_up_to_date(source.name, fingerprint, settings, output):
+                results.append(ClipResult(str(source), str(output), "skipped", 0.0))
+                continue
+            journal.start(source.name, fingerprint, settings, output.name)
+            result = make_clip(source, output, preset, options, show_progress, entry)
+            journal.finish(source.name, "done" if result.status == "done" else "failed",
+                           result.seconds, result.error)  # fmt: skip
+            results.append(result)
+            if fail_fast and result.status != "done":
+                break
+    finally:
+        journal.close()
     report = RunReport(str(folder), str(output_folder), preset.name, results)
-    output_folder.mkdir(parents=True, exist_ok=True)
     with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
         temp_path.write_text(report.to_json(), encoding="utf-8")
     return report
-
 
 @dataclass
 class PlanResult:

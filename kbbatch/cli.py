@@ -10,7 +10,7 @@ import click
 
 from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
-from kbbatch.batch import ClipOptions, RunReport, plan_folder, run_folder
+from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
@@ -68,11 +68,14 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
 @click.option("--fps", type=float, help="Override the preset's frame rate.")
 @click.option("--threads", type=int, default=ClipOptions().threads, show_default=True,
               help="Frames rendered in parallel.")
+@click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
+@click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def render(folder: Path, output: Path | None, preset_name: str, planner: str,
            manifest_path: Path | None, depth_backend: str, depth_model: str | None,
            no_adjust: bool, no_refine: bool, save_depth: bool, duration: float | None,
-           fps: float | None, threads: int, quiet: bool) -> None:  # fmt: skip
+           fps: float | None, threads: int, force: bool, fail_fast: bool,
+           quiet: bool) -> None:  # fmt: skip
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
     preset = _load_preset(preset_name, duration, fps)
     output = output or folder / "kenburns"
@@ -80,8 +83,11 @@ def render(folder: Path, output: Path | None, preset_name: str, planner: str,
                          refine=not no_refine)  # fmt: skip
     options = ClipOptions(planner=planner, depth=depth, threads=threads, save_depth=save_depth)
     manifest = _load_manifest(manifest_path)
-    report = run_folder(folder, output, preset, options, show_progress=not quiet,
-                        manifest=manifest)
+    try:
+        report = run_folder(folder, output, preset, options, show_progress=not quiet,
+                            manifest=manifest, force=force, fail_fast=fail_fast)
+    except OutputFolderError as error:
+        raise click.ClickException(str(error)) from error
     _print_summary(report)
     sys.exit(1 if report.failed else 0)
 
@@ -124,8 +130,9 @@ def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, dept
 
 def _print_summary(report: RunReport) -> None:
     done = [r for r in report.results if r.status == "done"]
-    click.echo(f"\n{len(done)} clip(s) made in {report.output_folder}, "
-               f"{len(report.failed)} failed, preset {report.preset}")  # fmt: skip
+    skipped = [r for r in report.results if r.status == "skipped"]
+    click.echo(f"\n{len(done)} clip(s) made in {report.output_folder}, {len(skipped)} already "
+               f"up to date, {len(report.failed)} failed, preset {report.preset}")  # fmt: skip
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")
@@ -171,3 +178,52 @@ def models_pull(name: str, sha256: str | None) -> None:
     except model_registry.ModelError as error:
         raise click.ClickException(str(error)) from error
     click.echo(f"{name}: {path}")
+
+
+@main.command()
+@click.argument("inbox", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--out", "outbox", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder the clips are written to (the job journal lives there too).")
+@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True)
+@click.option("--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False,
+              path_type=Path), help="JSON manifest of per-image crops and overrides.")
+@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True)
+@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
+              default="auto", show_default=True)
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Photos processed in parallel (processes).")
+@click.option("--poll", is_flag=True, help="Poll the folder instead of inotify (network shares).")
+@click.option("--settle", "settle_s", type=float, default=2.0, show_default=True,
+              help="Seconds a photo's size and time must stay unchanged before it is taken.")
+@click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
+def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | None, planner: str,
+          depth_backend: str, jobs: int, poll: bool, settle_s: float, keep_sources: bool
+          ) -> None:  # fmt: skip
+    """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
+    import logging
+
+    from kbbatch.watch import WatchSettings
+    from kbbatch.watch import watch as run_daemon
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    preset = _load_preset(preset_name, None, None)
+    options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
+    settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
+                             jobs, poll, settle_s, keep_sources)  # fmt: skip
+    try:
+        sys.exit(run_daemon(settings))
+    except OutputFolderError as error:
+        raise click.ClickException(str(error)) from error
+
+
+@main.command()
+@click.argument("outbox", type=click.Path(exists=True, file_okay=False, path_type=Path))
+def status(outbox: Path) -> None:
+    """Counts and failures from the job journal in OUTBOX."""
+    from kbbatch.journal import JOURNAL_NAME
+    from kbbatch.watch import status_lines
+
+    if not (outbox / JOURNAL_NAME).is_file():
+        raise click.ClickException(f"{outbox}: no job journal here ({JOURNAL_NAME})")
+    for line in status_lines(outbox):
+        click.echo(line)

@@ -20,7 +20,7 @@ IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", "
 MAX_SOURCE_PIXELS = 120_000_000
 """Larger images are decoded at a reduced size (JPEG) or refused, so memory stays bounded."""
 
-DECODE_LONG_SIDE_PX = 8192
+DECODE_LONG_SIDE_PX = 6000
 """JPEGs above MAX_SOURCE_PIXELS are decoded at a power-of-two reduction near this size."""
 
 ALPHA_MATTE_RGB = (0, 0, 0)

@@ -1,0 +1,130 @@
+"""The one-shot batch under re-runs and bad inputs: nothing lost, nothing partial."""
+
+from __future__ import annotations
+
+import os
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from kbbatch.batch import ClipOptions, OutputFolderError, run_folder
+from kbbatch.depth import DepthOptions
+from kbbatch.images import ImageReadError, read_image
+
+from .badinputs import BAD, GOOD, write_corpus
+from .conftest import textured_image
+
+FAST = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=2)
+
+
+def visible_clips(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.glob("*.mp4") if not p.name.startswith("."))
+
+
+def test_corpus_every_bad_file_reported_every_good_one_rendered(tmp_path, quick_preset):
+    write_corpus(tmp_path / "in")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "in").iterdir()}
+    report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    by_name = {Path(r.source).name: r for r in report.results}
+    assert all(by_name[name].status == "done" for name in GOOD), report.to_json()
+    for name in BAD:
+        assert by_name[name].status == "failed" and name in by_name[name].error
+    assert len(visible_clips(tmp_path / "out")) == len(GOOD)
+    assert {"twin.jpg.mp4", "twin.png.mp4"} <= set(visible_clips(tmp_path / "out"))
+    assert {p.name: p.read_bytes() for p in (tmp_path / "in").iterdir()} == before
+
+
+def test_rerun_skips_up_to_date_clips_and_force_redoes_them(tmp_path, quick_preset):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "b.jpg")
+    first = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in first.results] == ["done", "done"]
+    mtime = (tmp_path / "out" / "a.mp4").stat().st_mtime_ns
+    second = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in second.results] == ["skipped", "skipped"]
+    assert (tmp_path / "out" / "a.mp4").stat().st_mtime_ns == mtime
+    Image.fromarray(textured_image(180, 320, seed=5)).save(folder / "b.jpg")  # b changed
+    third = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in third.results] == ["skipped", "done"]
+    other = ClipOptions(planner="2d", depth=FAST.depth, threads=2)  # settings changed
+    assert [r.status for r in run_folder(folder, tmp_path / "out", quick_preset, other,
+                                         False).results] == ["done", "done"]  # fmt: skip
+    forced = run_folder(folder, tmp_path / "out", quick_preset, other, False, force=True)
+    assert [r.status for r in forced.results] == ["done", "done"]
+
+
+def test_fail_fast_stops_at_the_first_failure(tmp_path, quick_preset):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "a.jpg").write_bytes(b"")
+    Image.fromarray(textured_image(180, 320)).save(folder / "b.jpg")
+    report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False, fail_fast=True)
+    assert [r.status for r in report.results] == ["failed"]
+    assert not visible_clips(tmp_path / "out")
+
+
+def test_a_20000_px_jpeg_is_decoded_small_and_a_png_bomb_is_refused(tmp_path):
+    Image.new("L", (20000, 20000), 128).save(tmp_path / "huge.jpg", quality=50)
+    image = read_image(tmp_path / "huge.jpg")
+    assert max(image.shape[:2]) <= 10000 and image.shape[2] == 3
+    # A PNG that claims 20000 x 20000 pixels: refused before any pixel is decoded.
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data)))  # fmt: skip
+
+    header = struct.pack(">IIBBBBB", 20000, 20000, 8, 2, 0, 0, 0)
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
+           + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))  # fmt: skip
+    (tmp_path / "bomb.png").write_bytes(png)
+    with pytest.raises(ImageReadError, match="bomb.png: is 20000x20000 px"):
+        read_image(tmp_path / "bomb.png")
+
+
+def test_an_output_folder_that_cannot_be_written_is_a_clear_error(tmp_path, quick_preset):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    blocker = tmp_path / "file-not-folder"
+    blocker.write_text("x")
+    with pytest.raises(OutputFolderError, match="file-not-folder.*not writable"):
+        run_folder(folder, blocker / "out", quick_preset, FAST, False)
+    read_only = tmp_path / "read-only"
+    read_only.mkdir()
+    read_only.chmod(0o555)
+    if os.access(read_only, os.W_OK):
+        pytest.skip("running as root: a read-only mode does not stop writes here")
+    with pytest.raises(OutputFolderError, match="not writable"):
+        run_folder(folder, read_only, quick_preset, FAST, False)
+
+
+def test_disk_full_during_encoding_leaves_no_partial_clip(tmp_path):
+    """RLIMIT_FSIZE makes every write past 64 KiB fail, as a full disk would."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    noise = np.random.default_rng(0).integers(0, 256, (720, 1280, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(folder / "a.png")  # noise: the clip needs far over 64 KiB
+    out = tmp_path / "out"
+    script = (
+        "import resource, signal, sys\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))\n"
+        "from kbbatch.cli import main\n"
+        f"sys.argv = ['kbbatch', {str(folder)!r}, '-o', {str(out)!r}, '--preset', 'preview',"
+        " '--depth', 'ramp', '--planner', 'center', '--quiet', '--duration', '2', '--fps', '25']\n"
+        "main()\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=300)  # fmt: skip
+    assert result.returncode == 1, result.stderr
+    assert "a.png" in result.stderr and "FAILED" in result.stderr
+    assert not visible_clips(out), "a partial clip was left under the final name"
+    assert not list(out.glob(".*part*")), "a temporary file was left behind"
+    assert np.all([p.stat().st_size <= 65536 for p in out.iterdir()])

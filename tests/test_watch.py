@@ -1,0 +1,174 @@
+"""The watch-folder daemon as a real process: arrivals, bad inputs, kill -9, SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from kbbatch.journal import Journal
+
+from .badinputs import BAD, GOOD, write_corpus
+from .conftest import shared_photos
+
+pytestmark = pytest.mark.slow
+
+
+def preset_file(folder: Path, duration_s: float, fps: float = 10.0) -> Path:
+    path = folder / "test-preset.toml"
+    path.write_text(f"""description = "test"
+width_px = 320
+height_px = 180
+fps = {fps}
+duration_s = {duration_s}
+easing = "linear"
+zoom = 1.25
+zoom_direction = "in"
+max_shift_px = 100
+codec = "libx264"
+crf = 30
+pix_fmt = "yuv420p"
+encoder_preset = "ultrafast"
+""")
+    return path
+
+
+def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str) -> subprocess.Popen:
+    command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
+               "--preset", str(preset), "--settle", "1", "--depth", "ramp", "--planner",
+               "center", *extra]  # fmt: skip
+    log = open(outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
+    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+
+
+def clips_in(folder: Path) -> list[str]:
+    """Finished clips: visible .mp4 files (temporary ones are hidden)."""
+    return sorted(p.name for p in folder.glob("*.mp4") if not p.name.startswith("."))
+
+
+def wait_for(condition, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def finished_jobs(outbox: Path) -> int:
+    if not (outbox / ".kbbatch-journal.sqlite").exists():
+        return 0
+    journal = Journal(outbox)
+    try:
+        counts = journal.counts()
+        return counts["done"] + counts["failed"]
+    finally:
+        journal.close()
+
+
+def stop(process: subprocess.Popen) -> int:
+    process.send_signal(signal.SIGTERM)
+    return process.wait(timeout=60)
+
+
+def test_daemon_makes_a_clip_per_good_photo_and_a_report_per_bad_one(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 0.4)
+    photos = shared_photos(2)
+    for photo in photos:
+        shutil.copy(photo, inbox / photo.name)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        write_corpus(tmp_path / "corpus")
+        for path in (tmp_path / "corpus").iterdir():
+            os.rename(path, inbox / path.name)  # arrives by rename, as a finished file
+        total = len(photos) + len(GOOD) + len(BAD)
+        wait_for(lambda: finished_jobs(outbox) == total, 240, f"{total} finished jobs")
+        # Nothing else arrives: the daemon keeps running until told to stop.
+        assert daemon.poll() is None
+    finally:
+        assert stop(daemon) == 0
+    clips = clips_in(outbox)
+    assert len(clips) == len(photos) + len(GOOD), clips
+    assert "twin.jpg.mp4" in clips or "twin.png.mp4" in clips, "twins must not overwrite"
+    assert sorted(p.name for p in (inbox / "failed").glob("*.error.json")) == sorted(
+        f"{name}.error.json" for name in BAD)
+    report = json.loads((inbox / "failed" / "text.jpg.error.json").read_text())
+    assert "not an image" in report["error"]
+    assert sorted(p.name for p in (inbox / "done").iterdir()) == sorted(
+        [p.name for p in photos] + list(GOOD))
+    assert not [p for p in inbox.iterdir() if p.is_file()], "every photo left the inbox"
+    assert not list(outbox.glob(".*part*"))
+    status = subprocess.run([sys.executable, "-m", "kbbatch", "status", str(outbox)],
+                            capture_output=True, text=True, check=True)  # fmt: skip
+    assert f"done {total - len(BAD)}, failed {len(BAD)}" in status.stdout
+
+
+def test_kill_9_mid_encode_then_restart_gives_exactly_one_clip(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 12.0, fps=25.0)  # long enough to be caught mid-encode
+    [photo] = shared_photos(1)
+    shutil.copy(photo, inbox / photo.name)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: list(outbox.glob(".*.part*")), 120, "a clip being encoded")
+    finally:
+        daemon.send_signal(signal.SIGKILL)
+        daemon.wait(timeout=30)
+    assert not clips_in(outbox), "no clip may appear before it is complete"
+    restarted = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "the interrupted clip")
+    finally:
+        assert stop(restarted) == 0
+    time.sleep(1.0)  # an orphaned worker, had one survived, would write now
+    assert clips_in(outbox) == [f"{photo.stem}.mp4"]
+    assert not list(outbox.glob(".*part*")), "a partial file was left behind"
+    assert (inbox / "done" / photo.name).is_file() and not (inbox / photo.name).exists()
+    journal = Journal(outbox)
+    try:
+        job = journal.get(photo.name)
+        assert job.state == "done" and job.attempts == 2
+    finally:
+        journal.close()
+
+
+def test_sigterm_exits_zero_and_slow_writes_wait_until_complete(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 0.4)
+    [photo] = shared_photos(1)
+    data = photo.read_bytes()
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        time.sleep(1.5)
+        target = inbox / "slow.jpg"
+        chunk = len(data) // 8 + 1
+        with target.open("wb") as handle:  # written in place, in chunks, over ~3 s
+            for start in range(0, len(data), chunk):
+                handle.write(data[start : start + chunk])
+                handle.flush()
+                os.fsync(handle.fileno())
+                time.sleep(0.4)
+                assert finished_jobs(outbox) == 0
+                journal_path = outbox / ".kbbatch-journal.sqlite"
+                if journal_path.exists():
+                    journal = Journal(outbox)
+                    assert journal.get("slow.jpg") is None, "picked up before it was complete"
+                    journal.close()
+        wait_for(lambda: finished_jobs(outbox) == 1, 120, "the slowly written photo")
+        assert (outbox / "slow.mp4").is_file()
+    finally:
+        assert stop(daemon) == 0
