@@ -63,7 +63,7 @@ def main() -> int:
         return 2
     preset = load_preset(args.preset)
     threads = os.cpu_count() or 1
-    options = ClipOptions(threads=threads)
+    options = ClipOptions(threads=threads, cache_depth=False)
 
     photo = read_image(args.photo)
     timings: dict[str, float] = {}

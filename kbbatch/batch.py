@@ -49,7 +49,7 @@ CLIP_SUFFIX = ".mp4"
 
 @dataclass(frozen=True)
 class ClipOptions:
-    planner: str = "center"
+    planner: str = "auto"
     depth: DepthOptions = DepthOptions()
     threads: int = max(1, os.cpu_count() or 1)
     cache_depth: bool = True

@@ -196,6 +196,17 @@ def _splat_kernel(
         y0 = int(y_floor)
         fx = px - x_floor
         fy = py - y_floor
+        if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
+            # Interior: all four pixels exist (the common case, unrolled).
+            if (one - fx) * (one - fy) > min_weight and inv_z > front[y0, x0]:
+                front[y0, x0] = inv_z
+            if fx * (one - fy) > min_weight and inv_z > front[y0, x0 + 1]:
+                front[y0, x0 + 1] = inv_z
+            if (one - fx) * fy > min_weight and inv_z > front[y0 + 1, x0]:
+                front[y0 + 1, x0] = inv_z
+            if fx * fy > min_weight and inv_z > front[y0 + 1, x0 + 1]:
+                front[y0 + 1, x0 + 1] = inv_z
+            continue
         for k in range(4):
             dx = k & 1
             dy = k >> 1
@@ -228,6 +239,37 @@ def _splat_kernel(
         g = np.float32(colours[i, 1])
         b = np.float32(colours[i, 2])
         lowest = inv_z + soft_inv_z  # a pixel's front may be at most this near
+        if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
+            # Interior: all four pixels exist (the common case, unrolled).
+            w00 = (one - fx) * (one - fy)
+            w01 = fx * (one - fy)
+            w10 = (one - fx) * fy
+            w11 = fx * fy
+            if w00 > min_weight and front[y0, x0] <= lowest:
+                cell = accumulator[y0, x0]
+                cell[0] += w00 * r
+                cell[1] += w00 * g
+                cell[2] += w00 * b
+                cell[3] += w00
+            if w01 > min_weight and front[y0, x0 + 1] <= lowest:
+                cell = accumulator[y0, x0 + 1]
+                cell[0] += w01 * r
+                cell[1] += w01 * g
+                cell[2] += w01 * b
+                cell[3] += w01
+            if w10 > min_weight and front[y0 + 1, x0] <= lowest:
+                cell = accumulator[y0 + 1, x0]
+                cell[0] += w10 * r
+                cell[1] += w10 * g
+                cell[2] += w10 * b
+                cell[3] += w10
+            if w11 > min_weight and front[y0 + 1, x0 + 1] <= lowest:
+                cell = accumulator[y0 + 1, x0 + 1]
+                cell[0] += w11 * r
+                cell[1] += w11 * g
+                cell[2] += w11 * b
+                cell[3] += w11
+            continue
         for k in range(4):
             dx = k & 1
             dy = k >> 1
