@@ -99,61 +99,84 @@ def fill_background(
 
 @numba.njit(cache=True, nogil=True)
 def _grow_fill(colour, depth, known, rows, cols):
+    # Ring by ring from a frontier (hole pixels touching known ones), so each hole pixel is
+    # visited a bounded number of times, however wide the hole.
     height, width = known.shape
-    pending = np.ones(rows.shape[0], np.bool_)
-    new_colour = np.zeros((rows.shape[0], 3), np.float32)
-    new_depth = np.zeros(rows.shape[0], np.float32)
-    ready = np.zeros(rows.shape[0], np.bool_)
-    remaining = rows.shape[0]
-    while remaining > 0:
-        grown = 0
-        for k in range(rows.shape[0]):
-            ready[k] = False
-            if not pending[k]:
-                continue
-            y, x = rows[k], cols[k]
+    total = rows.shape[0]
+    in_hole = np.zeros((height, width), np.bool_)
+    queued = np.zeros((height, width), np.bool_)
+    frontier_y = np.empty(total, np.int64)
+    frontier_x = np.empty(total, np.int64)
+    next_y = np.empty(total, np.int64)
+    next_x = np.empty(total, np.int64)
+    values = np.empty((total, 4), np.float32)
+    for k in range(total):
+        in_hole[rows[k], cols[k]] = True
+    size = 0
+    for k in range(total):
+        y, x = rows[k], cols[k]
+        touches = False
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < height and 0 <= xx < width and known[yy, xx]:
+                    touches = True
+        if touches:
+            queued[y, x] = True
+            frontier_y[size] = y
+            frontier_x[size] = x
+            size += 1
+    while size > 0:
+        for k in range(size):
+            y, x = frontier_y[k], frontier_x[k]
             count = 0
-            r = g = b = 0.0
-            far = 0.0
+            red = green = blue = far = np.float32(0.0)
             for dy in range(-1, 2):
                 for dx in range(-1, 2):
                     yy, xx = y + dy, x + dx
                     if 0 <= yy < height and 0 <= xx < width and known[yy, xx]:
                         count += 1
-                        r += colour[yy, xx, 0]
-                        g += colour[yy, xx, 1]
-                        b += colour[yy, xx, 2]
+                        red += colour[yy, xx, 0]
+                        green += colour[yy, xx, 1]
+                        blue += colour[yy, xx, 2]
                         far = max(far, depth[yy, xx])
-            if count:
-                new_colour[k, 0] = r / count
-                new_colour[k, 1] = g / count
-                new_colour[k, 2] = b / count
-                new_depth[k] = far
-                ready[k] = True
-                grown += 1
-        if grown == 0:
-            break  # holes with no background source at all
-        for k in range(rows.shape[0]):
-            if ready[k]:
-                y, x = rows[k], cols[k]
-                colour[y, x, 0] = new_colour[k, 0]
-                colour[y, x, 1] = new_colour[k, 1]
-                colour[y, x, 2] = new_colour[k, 2]
-                depth[y, x] = new_depth[k]
-                known[y, x] = True
-                pending[k] = False
-        remaining -= grown
+            values[k, 0] = red / count
+            values[k, 1] = green / count
+            values[k, 2] = blue / count
+            values[k, 3] = far
+        for k in range(size):
+            y, x = frontier_y[k], frontier_x[k]
+            for c in range(3):
+                colour[y, x, c] = values[k, c]
+            depth[y, x] = values[k, 3]
+            known[y, x] = True
+        following = 0
+        for k in range(size):
+            y, x = frontier_y[k], frontier_x[k]
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy, xx = y + dy, x + dx
+                    if (0 <= yy < height and 0 <= xx < width and in_hole[yy, xx]
+                            and not queued[yy, xx]):
+                        queued[yy, xx] = True
+                        next_y[following] = yy
+                        next_x[following] = xx
+                        following += 1
+        frontier_y, next_y = next_y, frontier_y
+        frontier_x, next_x = next_x, frontier_x
+        size = following
     # A hole fenced in by foreground alone: take the farthest depth seen and mid grey.
-    farthest = 0.0
+    farthest = np.float32(0.0)
     for y in range(height):
         for x in range(width):
             if known[y, x] and depth[y, x] > farthest and depth[y, x] < np.inf:
                 farthest = depth[y, x]
-    for k in range(rows.shape[0]):
-        if pending[k]:
-            depth[rows[k], cols[k]] = farthest
+    for k in range(total):
+        y, x = rows[k], cols[k]
+        if not known[y, x]:
+            depth[y, x] = farthest
             for c in range(3):
-                colour[rows[k], cols[k], c] = 127.5
+                colour[y, x, c] = 127.5
 
 
 def smooth_fill(colour: np.ndarray, hole: np.ndarray) -> np.ndarray:

@@ -86,17 +86,18 @@ def back_project(
     height, width = depth.shape
     if (width, height) != (view.width_px, view.height_px):
         raise ValueError("depth does not match the view size")
-    rows, cols = np.mgrid[0:height, 0:width].astype(np.float32)
     if keep is None:
         keep = np.isfinite(depth)
-    z = depth[keep].astype(np.float32)
-    x = (cols[keep] + 0.5 - view.principal_x_px) * z / view.focal_px + view.position[0]
-    y = (rows[keep] + 0.5 - view.principal_y_px) * z / view.focal_px + view.position[1]
+    rows, cols = np.nonzero(keep)
+    z = depth[rows, cols].astype(np.float32)
+    scale = z / np.float32(view.focal_px)
+    x = (cols.astype(np.float32) + np.float32(0.5 - view.principal_x_px)) * scale
+    y = (rows.astype(np.float32) + np.float32(0.5 - view.principal_y_px)) * scale
     return PointCloud(
-        np.ascontiguousarray(x, dtype=np.float32),
-        np.ascontiguousarray(y, dtype=np.float32),
-        np.ascontiguousarray(z + view.position[2], dtype=np.float32),
-        np.ascontiguousarray(colour[keep], dtype=np.uint8),
+        np.ascontiguousarray(x + np.float32(view.position[0]), dtype=np.float32),
+        np.ascontiguousarray(y + np.float32(view.position[1]), dtype=np.float32),
+        np.ascontiguousarray(z + np.float32(view.position[2]), dtype=np.float32),
+        np.ascontiguousarray(colour[rows, cols], dtype=np.uint8),
     )
 
 
@@ -138,13 +139,30 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
     front = np.empty((view.height_px, view.width_px), np.float32)
     _splat_view(cloud, view, disparity_scale, accumulator, front)
-    weight = accumulator[..., _WEIGHT]
-    covered = weight > MIN_SPLAT_WEIGHT
-    with np.errstate(divide="ignore", invalid="ignore"):
-        colour = np.where(covered[..., None], accumulator[..., :3] / weight[..., None], 0.0)
-        depth = np.where(covered, 1.0 / front, np.inf)
-    return Rendering(colour.astype(np.float32), depth.astype(np.float32),
-                     np.where(covered, weight, 0.0).astype(np.float32))  # fmt: skip
+    colour = np.empty((view.height_px, view.width_px, 3), np.float32)
+    depth = np.empty((view.height_px, view.width_px), np.float32)
+    weight = np.empty((view.height_px, view.width_px), np.float32)
+    _normalise_kernel(accumulator, front, colour, depth, weight)
+    return Rendering(colour, depth, weight)
+
+
+@numba.njit(cache=True, nogil=True)
+def _normalise_kernel(accumulator, front, colour, depth, weight):
+    height, width = front.shape
+    for yy in range(height):
+        for xx in range(width):
+            w = accumulator[yy, xx, _WEIGHT]
+            if w > MIN_SPLAT_WEIGHT:
+                scale = np.float32(1.0) / w
+                for c in range(3):
+                    colour[yy, xx, c] = accumulator[yy, xx, c] * scale
+                depth[yy, xx] = np.float32(1.0) / front[yy, xx]
+                weight[yy, xx] = w
+            else:
+                for c in range(3):
+                    colour[yy, xx, c] = 0.0
+                depth[yy, xx] = np.inf
+                weight[yy, xx] = 0.0
 
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
