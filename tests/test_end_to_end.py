@@ -53,3 +53,21 @@ def test_cli_exit_code_and_summary(tmp_path):
     assert "1 clip(s) made" in result.stdout
     assert "bad.png: is empty (0 bytes)" in result.stderr
     assert (folder / "kenburns" / f"{source.stem}.mp4").is_file()
+
+
+def test_save_depth_writes_a_16_bit_disparity_and_a_preview(tmp_path, quick_preset):
+    import cv2
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    [source] = shared_photos(1)
+    shutil.copy(source, folder / source.name)
+    options = ClipOptions(threads=2, save_depth=True)
+    report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False)
+    assert report.results[0].status == "done"
+    disparity = cv2.imread(str(tmp_path / "out" / f"{source.stem}.disparity.png"),
+                           cv2.IMREAD_UNCHANGED)  # fmt: skip
+    assert disparity.dtype == np.uint16 and disparity.max() == 65535
+    assert max(disparity.shape) == 1024 and len(np.unique(disparity)) > 10
+    preview = cv2.imread(str(tmp_path / "out" / f"{source.stem}.depth-preview.png"))
+    assert preview.shape[:2] == disparity.shape

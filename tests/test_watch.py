@@ -86,7 +86,7 @@ def test_daemon_makes_a_clip_per_good_photo_and_a_report_per_bad_one(tmp_path):
     photos = shared_photos(2)
     for photo in photos:
         shutil.copy(photo, inbox / photo.name)
-    daemon = start_daemon(inbox, outbox, preset)
+    daemon = start_daemon(inbox, outbox, preset, "--jobs", "2")
     try:
         write_corpus(tmp_path / "corpus")
         for path in (tmp_path / "corpus").iterdir():
