@@ -104,6 +104,44 @@ def backends() -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     return rows
 
 
+REFINE_FACTOR = 4
+
+
+def refinement_rows() -> None:
+    """Refinement against plain bilinear upsampling: the truth, downsampled 4x, brought back up
+    guided by the photo, scored against the truth at full size."""
+    from kbbatch.depth.refine import refine
+
+    print(f"\nupsampling the truth from 1/{REFINE_FACTOR} size (disparity space, valid pixels)")
+    print(f"{'method':<20}{'rel':>10}{'edge_acc_px':>13}{'edge_comp_px':>14}")
+    scores: dict[str, list[list[float]]] = {"bilinear": [], "refine (ours)": []}
+    for sample in samples():
+        truth, space = ground_truth(sample)
+        disparity = 1.0 / np.where(truth > 0, truth, np.inf) if space == "depth" else truth
+        valid = truth > 0
+        if valid.mean() < 0.5:
+            continue  # sparse ground truth (KITTI) says nothing about edges
+        image = read_image(next(sample.glob("rgb.*")))
+        filled = cv2.inpaint(disparity.astype(np.float32), (~valid).astype(np.uint8), 3,
+                             cv2.INPAINT_NS)  # fmt: skip
+        height, width = filled.shape
+        small = cv2.resize(filled, (width // REFINE_FACTOR, height // REFINE_FACTOR),
+                           interpolation=cv2.INTER_AREA)  # fmt: skip
+        candidates = {
+            "bilinear": cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR),
+            "refine (ours)": refine(small, image),
+        }
+        true_edges = edges(disparity, valid)
+        for name, upsampled in candidates.items():
+            rel = float(np.mean(np.abs(upsampled[valid] - disparity[valid]) / disparity[valid]))
+            predicted_edges = edges(np.maximum(upsampled, 1e-6), valid)
+            scores[name].append([rel, edge_distance(predicted_edges, true_edges),
+                                 edge_distance(true_edges, predicted_edges)])  # fmt: skip
+    for name, rows in scores.items():
+        rel, accuracy, completeness = np.nanmean(rows, axis=0)
+        print(f"{name:<20}{rel:>10.4f}{accuracy:>13.2f}{completeness:>14.2f}")
+
+
 def main() -> int:
     if not EVAL.is_dir():
         print(f"evaluation data not found at {EVAL} (../shared is developer/CI only)")
@@ -136,6 +174,7 @@ def main() -> int:
             cells.append(f"{np.mean(values):>13.3f}" if values else f"{'n/a':>13}")
         print(f"{name:<34}" + "".join(cells) + f"{np.median(seconds[name]):>10.2f}")
     print("n/a: the map has no depth edges to compare")
+    refinement_rows()
     if "--json" in sys.argv:
         print(json.dumps(results, indent=1))
     return 0

@@ -16,6 +16,9 @@ import numpy as np
 EDGE_STEP_FRACTION = 0.1
 """A window whose disparity range exceeds this fraction of its largest value holds an edge."""
 
+COLOUR_MARGIN_LAB = 20.0
+"""A pixel snaps to a side only when it is this much closer (Lab units) to that side's colour."""
+
 
 def refine(disparity: np.ndarray, image: np.ndarray) -> np.ndarray:
     """Disparity at the image's size, with depth edges snapped to colour edges."""
@@ -42,4 +45,7 @@ def refine(disparity: np.ndarray, image: np.ndarray) -> np.ndarray:
     near_distance = np.linalg.norm(colour - side_mean(near_side), axis=-1)
     far_distance = np.linalg.norm(colour - side_mean(far_side), axis=-1)
     snapped = np.where(near_distance < far_distance, nearest, farthest)
-    return np.where(edge, snapped, up).astype(np.float32)
+    # Snap only where the colour says clearly which side a pixel is on; elsewhere the smooth
+    # upsampling is the safer guess.
+    decisive = np.abs(near_distance - far_distance) > COLOUR_MARGIN_LAB
+    return np.where(edge & decisive, snapped, up).astype(np.float32)
