@@ -95,7 +95,7 @@ def backends() -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     rows = {
         "ramp (vertical prior)": via(DepthOptions(backend="ramp")),
         "popup, no cards": popup_without_cards,
-        "popup (cards, refined)": via(DepthOptions(backend="popup")),
+        "popup (horizon, cards)": via(DepthOptions(backend="popup")),
     }
     for model in DEPTH_MODELS:
         if cached_path(model):
