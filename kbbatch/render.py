@@ -110,13 +110,19 @@ def _scratch(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     key = (height, width)
     if getattr(_buffers, "key", None) != key:
         _buffers.key = key
-        _buffers.accumulator = np.empty((height, width, 4), np.float32)
+        _buffers.accumulator = np.zeros((height, width, 4), np.float32)
         _buffers.front = np.empty((height, width), np.float32)
     return _buffers.accumulator, _buffers.front
 
 
-def _splat_view(cloud: PointCloud, view: View, disparity_scale: float,
-                accumulator: np.ndarray, front: np.ndarray) -> None:  # fmt: skip
+def _splat_view(
+    cloud: PointCloud,
+    view: View,
+    disparity_scale: float,
+    accumulator: np.ndarray,
+    front: np.ndarray,
+    clear: bool = True,
+) -> None:
     _splat_kernel(
         cloud.x, cloud.y, cloud.z, cloud.colour,
         np.float32(view.position[0]), np.float32(view.position[1]),
@@ -124,7 +130,7 @@ def _splat_view(cloud: PointCloud, view: View, disparity_scale: float,
         np.float32(view.principal_x_px - 0.5), np.float32(view.principal_y_px - 0.5),
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
-        accumulator, front,
+        accumulator, front, clear,
     )  # fmt: skip
 
 
@@ -167,7 +173,8 @@ def _normalise_kernel(accumulator, front, colour, depth, weight):
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """Which pixels of a view the cloud covers (the planner's disocclusion test)."""
-    accumulator, front = _scratch(view.height_px, view.width_px)
+    accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
+    front = np.empty((view.height_px, view.width_px), np.float32)
     _splat_view(cloud, view, disparity_scale, accumulator, front)
     return accumulator[..., _WEIGHT] > MIN_SPLAT_WEIGHT
 
@@ -178,7 +185,7 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
     The same passes as render(), with normalising, filling and rounding fused into one.
     """
     accumulator, front = _scratch(view.height_px, view.width_px)
-    _splat_view(cloud, view, disparity_scale, accumulator, front)
+    _splat_view(cloud, view, disparity_scale, accumulator, front, clear=False)
     frame = np.empty((view.height_px, view.width_px, 3), np.uint8)
     _finish_kernel(accumulator, front, frame)
     return frame
@@ -187,7 +194,7 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
 @numba.njit(cache=True, nogil=True)
 def _splat_kernel(
     xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
-    accumulator, front,
+    accumulator, front, clear,
 ):  # fmt: skip
     # Written out by hand on purpose: helper functions and float64 promotion made this loop
     # two to three times slower. All arithmetic stays in float32.
@@ -195,7 +202,8 @@ def _splat_kernel(
     one = np.float32(1.0)
     near = np.float32(NEAR_PLANE)
     min_weight = np.float32(MIN_SPLAT_WEIGHT)
-    accumulator[:] = 0.0
+    if clear:  # render_frame's finishing pass leaves its buffer cleared for the next frame
+        accumulator[:] = 0.0
     front[:] = 0.0
     # Pass 1: the nearest surface (largest inverse depth) per pixel, over each point's four
     # bilinear pixels.
@@ -329,8 +337,10 @@ def _filter_cracks(front, crack_inv_z):
 @numba.njit(cache=True, nogil=True)
 def _finish_kernel(accumulator, front, frame):
     """Normalise, round, and give every empty pixel the colour of the farthest covered pixel
-    found along its row and column (a cheap fill from the background side)."""
+    found along its row and column (a cheap fill from the background side). Leaves the
+    accumulator cleared for the next frame; front keeps 0 where a pixel was empty."""
     height, width = front.shape
+    empty = 0
     for yy in range(height):
         for xx in range(width):
             cell = accumulator[yy, xx]
@@ -340,10 +350,15 @@ def _finish_kernel(accumulator, front, frame):
                 for c in range(3):
                     frame[yy, xx, c] = min(255, int(cell[c] * scale + np.float32(0.5)))
             else:
-                cell[_WEIGHT] = 0.0
+                front[yy, xx] = 0.0
+                empty += 1
+            for c in range(4):
+                cell[c] = 0.0
+    if empty == 0:
+        return
     for yy in range(height):
         for xx in range(width):
-            if accumulator[yy, xx, _WEIGHT] > 0:
+            if front[yy, xx] > 0:
                 continue
             best_inv = np.float32(np.inf)
             best_y = -1
@@ -351,7 +366,7 @@ def _finish_kernel(accumulator, front, frame):
             for step_y, step_x in ((0, -1), (0, 1), (-1, 0), (1, 0)):
                 cy = yy + step_y
                 cx = xx + step_x
-                while 0 <= cy < height and 0 <= cx < width and accumulator[cy, cx, _WEIGHT] == 0:
+                while 0 <= cy < height and 0 <= cx < width and front[cy, cx] == 0:
                     cy += step_y
                     cx += step_x
                 if 0 <= cy < height and 0 <= cx < width and front[cy, cx] < best_inv:
