@@ -21,18 +21,9 @@ from kbbatch.camera import depth_from_disparity, working_size
 from kbbatch.images import list_images, read_image
 from kbbatch.presets import load_preset
 from planners import PlanRequest, get_planner
-from planners.auto import AutoPlanner, score_candidates
+from planners.auto import AutoPlanner, plan_disocclusion
 
 PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"
-
-
-def end_disocclusion(request: PlanRequest, crop) -> float:
-    _, candidates = score_candidates(request, use_saliency=False, use_motion=False)
-    key = (round(crop.center_x_px, 6), round(crop.center_y_px, 6))
-    for candidate in candidates:
-        if (round(candidate.crop.center_x_px, 6), round(candidate.crop.center_y_px, 6)) == key:
-            return candidate.disoccluded
-    return float("nan")
 
 
 def main() -> int:
@@ -61,7 +52,7 @@ def main() -> int:
             plan = planner.plan(request)
             if name == "auto":
                 seconds = time.perf_counter() - started
-            values.append(end_disocclusion(request, plan.end))
+            values.append(plan_disocclusion(request, plan))
         rows.append([seconds, *values])
         print(f"{photo.name[:41]:<42}{seconds:>8.2f}" + "".join(
             f"{v:>9.4f}" if i < 2 else f"{v:>11.4f}" for i, v in enumerate(values)))  # fmt: skip

@@ -124,7 +124,8 @@ def prepare_scene(
 
     clock = time.perf_counter()
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
-    photo_cloud = resize_to(photo, round(width * scale), round(height * scale))
+    photo_cloud = resize_to(photo, round(width * scale), round(height * round(width * scale)
+                                                               / width))  # fmt: skip
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,

@@ -154,20 +154,37 @@ def crop_at(plan: Plan, t: float) -> Crop:
     )
 
 
+def widest_crop(plan: Plan) -> Crop:
+    return plan.start if plan.start.width_px >= plan.end.width_px else plan.end
+
+
+def framing_offset(plan: Plan, scene: SceneGeometry) -> tuple[float, float]:
+    """The widest crop's offset from the image centre, in working pixels.
+
+    It is rendered as a shifted principal point (plain framing, no parallax); only the move
+    between the crops translates the camera. With a centred widest crop this is the paper's
+    camera exactly, and a photo framed off-centre still starts as the photo itself.
+    """
+    widest = widest_crop(plan)
+    return widest.center_x_px - scene.width_px / 2, widest.center_y_px - scene.height_px / 2
+
+
 def camera_position(plan: Plan, scene: SceneGeometry, t: float) -> tuple[float, float, float]:
     """Camera position at time t so that the nearest surface follows the crop exactly.
 
     The dolly brings the nearest surface from depth zmin to zmin * w(t) / max(w): that
     magnifies it by the crop-width ratio. The lateral move puts the nearest surface under the
-    crop centre at the image centre, so a 100 px crop offset moves it by 100 px.
+    crop centre where the framing expects it, so a 100 px crop offset moves it by 100 px.
     """
     crop = crop_at(plan, t)
-    widest = max(plan.start.width_px, plan.end.width_px)
+    widest = widest_crop(plan)
     zmin = scene.nearest_depth
-    target_depth = zmin * crop.width_px / widest
+    relative_size = crop.width_px / widest.width_px
+    target_depth = zmin * relative_size
     f = scene.focal_px
-    offset_x = crop.center_x_px - scene.width_px / 2
-    offset_y = crop.center_y_px - scene.height_px / 2
+    frame_x, frame_y = framing_offset(plan, scene)
+    offset_x = crop.center_x_px - scene.width_px / 2 - frame_x * relative_size
+    offset_y = crop.center_y_px - scene.height_px / 2 - frame_y * relative_size
     return (offset_x * zmin / f, offset_y * zmin / f, zmin - target_depth)
 
 
@@ -181,16 +198,17 @@ def output_view(
 ) -> View:
     """The view that renders the frame at time t straight at the output size.
 
-    Equivalent to the reference's full-size render, centred cut of the widest crop, and
+    Equivalent to the reference's full-size render, cut of the widest crop's window, and
     resize, without rendering pixels that are thrown away.
     """
-    widest = max(plan.start.width_px, plan.end.width_px)
-    scale = width_px / widest
+    widest = widest_crop(plan)
+    scale = width_px / widest.width_px
+    frame_x, frame_y = framing_offset(plan, scene)
     return View(
         position=camera_position(plan, scene, t) if position is None else position,
         focal_px=scene.focal_px * scale,
-        principal_x_px=width_px / 2,
-        principal_y_px=height_px / 2,
+        principal_x_px=width_px / 2 - frame_x * scale,
+        principal_y_px=height_px / 2 - frame_y * scale,
         width_px=width_px,
         height_px=height_px,
     )

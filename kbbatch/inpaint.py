@@ -15,7 +15,15 @@ import numba
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.camera import Crop, Plan, SceneGeometry, View, camera_position, overshoot, working_view
+from kbbatch.camera import (
+    Plan,
+    SceneGeometry,
+    View,
+    camera_position,
+    overshoot,
+    widest_crop,
+    working_view,
+)
 from kbbatch.render import PointCloud, back_project, depth_edges, render
 
 FOREGROUND_MARGIN = 0.05
@@ -226,17 +234,17 @@ def extend_at_view(
 
 
 def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:
-    """Pixels of a full working view (times scale) that some output frame can show."""
+    """Pixels of a full working view (times scale) that some output frame can show: the
+    widest crop's window, where the output frames are cut from."""
     width = round(scene.width_px * scale)
     height = round(scene.height_px * scale)
-    widest_w = max(plan.start.width_px, plan.end.width_px) * scale
-    widest_h = max(plan.start.height_px, plan.end.height_px) * scale
-    margin = 2.0 * scale
+    widest = widest_crop(plan)
+    margin = 2.0
     region = np.zeros((height, width), bool)
-    left = max(0, int(np.floor(width / 2 - widest_w / 2 - margin)))
-    top = max(0, int(np.floor(height / 2 - widest_h / 2 - margin)))
-    right = min(width, int(np.ceil(width / 2 + widest_w / 2 + margin)))
-    bottom = min(height, int(np.ceil(height / 2 + widest_h / 2 + margin)))
+    left = max(0, int(np.floor((widest.left_px - margin) * scale)))
+    top = max(0, int(np.floor((widest.top_px - margin) * scale)))
+    right = min(width, int(np.ceil((widest.right_px + margin) * scale)))
+    bottom = min(height, int(np.ceil((widest.bottom_px + margin) * scale)))
     region[top:bottom, left:right] = True
     return region
 
@@ -244,14 +252,11 @@ def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray
 def source_window(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:
     """Photo pixels (at working size times scale) that some frame may show.
 
-    The nearest surface follows the crops and farther ones drift toward the centred widest
-    crop, so the union of those windows bounds what is seen; the margin covers surfaces
-    nearer than the anchor depth (which move a little more than the crop).
+    The nearest surface follows the crops and the farthest stays within the widest crop, so
+    the union of the two crops bounds what is seen; the margin covers surfaces nearer than
+    the anchor depth (which move a little more than the crop).
     """
-    widest_w = max(plan.start.width_px, plan.end.width_px)
-    widest_h = max(plan.start.height_px, plan.end.height_px)
-    windows = [plan.start, plan.end, Crop(scene.width_px / 2, scene.height_px / 2, widest_w,
-                                          widest_h)]  # fmt: skip
+    windows = [plan.start, plan.end]
     margin = SOURCE_MARGIN_FRACTION * max(scene.width_px, scene.height_px)
     left = max(0, int((min(c.left_px for c in windows) - margin) * scale))
     top = max(0, int((min(c.top_px for c in windows) - margin) * scale))
@@ -293,6 +298,9 @@ def build_extended_cloud(
     view, the disocclusions are filled with background and appended to the cloud.
     """
     cloud_scale = photo.shape[1] / scene.width_px
+    cloud_height = round(scene.height_px * cloud_scale)
+    if photo.shape[0] != cloud_height:  # a rounding apart: conform, views are sized this way
+        photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
     snapped = snap_edge_depth(depth)
     cloud_depth = cv2.resize(snapped, (photo.shape[1], photo.shape[0]),
                              interpolation=cv2.INTER_NEAREST)  # fmt: skip

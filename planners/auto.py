@@ -18,13 +18,14 @@ from kbbatch.camera import (
     Plan,
     SceneGeometry,
     camera_position,
+    clamp_inside,
     fit_crop,
     nearest_depth,
     working_view,
     zoomed,
 )  # fmt: skip
 from kbbatch.inpaint import visible_region
-from kbbatch.render import back_project, coverage, depth_edges
+from kbbatch.render import PointCloud, back_project, coverage, depth_edges
 from planners import PlanRequest
 
 SEARCH_LONG_SIDE_PX = 256
@@ -32,6 +33,16 @@ SEARCH_LONG_SIDE_PX = 256
 
 SALIENCY_WEIGHT = 0.05
 """Score per unit of distance (in crop widths) between the tight crop and the salient object."""
+
+SALIENT_TARGET_HEIGHT = 0.3
+"""The camera leans toward this height of the salient object's box (0 is its top): its upper
+part, where faces and heads usually are; the box centre would frame a person's torso."""
+
+HEAD_HEIGHT = 0.12
+"""This height of the salient box (its head) must stay in the tight crop when any candidate
+allows it: the least-disocclusion objective alone likes to crop heads off."""
+
+HEAD_MARGIN_FRACTION = 0.05
 
 MOTION_WEIGHT = 0.02
 """Score of a candidate that does not move sideways at all, fading out at MIN_VISIBLE_SHIFT."""
@@ -49,10 +60,24 @@ class Candidate:
     score: float
 
 
-def wide_and_tight(request: PlanRequest) -> tuple[Crop, Crop]:
-    """The widest crop of the output aspect inside 97 % of the image, and it zoomed."""
+def wide_and_tight(request: PlanRequest, box: tuple[float, float, float, float] | None = None
+                   ) -> tuple[Crop, Crop]:  # fmt: skip
+    """The widest crop of the output aspect inside 97 % of the image, and it zoomed.
+
+    When the crop cannot show the whole photo (a tall photo, a wide preset), it is placed so
+    that the salient object's head sits a third of the way down it, not cut off by centring.
+    """
     height, width = request.depth.shape
     wide = fit_crop(width, height, request.preset.aspect, paper.START_CROP_FRACTION)
+    if box is not None:
+        head_x, head_y = box_point(box, HEAD_HEIGHT)
+        # Kept inside the same 97 % area: moved within the margin box, then shifted back.
+        margin_x = (1 - paper.START_CROP_FRACTION) / 2 * width
+        margin_y = (1 - paper.START_CROP_FRACTION) / 2 * height
+        placed = zoomed(wide, 1.0, (head_x - margin_x, head_y + wide.height_px / 6 - margin_y))
+        placed = clamp_inside(placed, width - 2 * margin_x, height - 2 * margin_y)
+        wide = zoomed(placed, 1.0, (placed.center_x_px + margin_x,
+                                    placed.center_y_px + margin_y))  # fmt: skip
     return wide, zoomed(wide, request.preset.zoom)
 
 
@@ -68,8 +93,8 @@ def search_offsets(max_shift_px: float) -> np.ndarray:
     return np.vstack([grid, [[0.0, 0.0]]])
 
 
-def salient_target(request: PlanRequest) -> tuple[float, float] | None:
-    """Centre of the dominant salient object (largest confident salient box), if any."""
+def salient_box(request: PlanRequest) -> tuple[float, float, float, float] | None:
+    """The dominant salient object's box (the largest confident one), if any."""
     from kbbatch.segment import detect
 
     boxes = [
@@ -78,37 +103,81 @@ def salient_target(request: PlanRequest) -> tuple[float, float] | None:
     ]  # fmt: skip
     if not boxes:
         return None
-    x0, y0, x1, y1 = max(boxes, key=lambda d: (d.box[2] - d.box[0]) * (d.box[3] - d.box[1])).box
-    return (x0 + x1) / 2, (y0 + y1) / 2
+    return max(boxes, key=lambda d: (d.box[2] - d.box[0]) * (d.box[3] - d.box[1])).box
+
+
+def box_point(box: tuple[float, float, float, float], height_fraction: float
+              ) -> tuple[float, float]:  # fmt: skip
+    x0, y0, x1, y1 = box
+    return (x0 + x1) / 2, y0 + height_fraction * (y1 - y0)
+
+
+def keeps(crop: Crop, point: tuple[float, float]) -> bool:
+    """Whether a crop shows a point with a margin around it."""
+    margin_x = HEAD_MARGIN_FRACTION * crop.width_px
+    margin_y = HEAD_MARGIN_FRACTION * crop.height_px
+    return (crop.left_px + margin_x <= point[0] <= crop.right_px - margin_x
+            and crop.top_px + margin_y <= point[1] <= crop.bottom_px - margin_y)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class CoarseScene:
+    """The photo's raw point cloud (depth-edge points removed, no fill) at the search size."""
+
+    scene: SceneGeometry
+    cloud: PointCloud
+    scale: float
+
+    @classmethod
+    def of(cls, depth: np.ndarray) -> CoarseScene:
+        height, width = depth.shape
+        scale = min(1.0, SEARCH_LONG_SIDE_PX / max(width, height))
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        small_depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        scene = SceneGeometry(width, height, nearest_depth(depth))
+        colour = np.zeros((*small_depth.shape, 3), np.uint8)
+        cloud = back_project(colour, small_depth, working_view(scene, (0.0, 0.0, 0.0), scale),
+                             keep=~depth_edges(small_depth))  # fmt: skip
+        return cls(scene, cloud, scale)
+
+    def region(self, wide: Crop, tight: Crop) -> np.ndarray:
+        return visible_region(self.scene, ordered(wide, tight, "in", "linear", "auto"),
+                              self.scale)  # fmt: skip
+
+    def disoccluded(self, wide: Crop, tight: Crop, region: np.ndarray | None = None) -> float:
+        """Fraction of the output window left uncovered at the tight crop's view."""
+        region = self.region(wide, tight) if region is None else region
+        plan = ordered(wide, tight, "in", "linear", "auto")
+        view = working_view(self.scene, camera_position(plan, self.scene, 1.0), self.scale)
+        disparity_scale = self.scene.focal_px * paper.DISPARITY_MAX_PX
+        uncovered = ~coverage(self.cloud, view, disparity_scale) & region
+        return float(uncovered.sum() / region.sum())
+
+
+def plan_disocclusion(request: PlanRequest, plan: Plan) -> float:
+    """How much unseen background a plan's tight view reveals (the paper's objective)."""
+    wide, tight = ((plan.start, plan.end) if plan.start.width_px >= plan.end.width_px
+                   else (plan.end, plan.start))  # fmt: skip
+    return CoarseScene.of(request.depth).disoccluded(wide, tight)
 
 
 def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion: bool = True
-                     ) -> tuple[Crop, list[Candidate]]:  # fmt: skip
-    """Score every tight-crop candidate; returns the wide crop and the candidates."""
+                     ) -> tuple[Crop, list[Candidate], Crop]:  # fmt: skip
+    """Score every tight-crop candidate; returns the wide crop, the candidates, and the
+    unshifted tight crop they were searched around."""
     height, width = request.depth.shape
-    wide, tight = wide_and_tight(request)
-    scale = min(1.0, SEARCH_LONG_SIDE_PX / max(width, height))
-    small_depth = cv2.resize(request.depth, (max(1, round(width * scale)),
-                                             max(1, round(height * scale))),
-                             interpolation=cv2.INTER_NEAREST)  # fmt: skip
-    scene = SceneGeometry(width, height, nearest_depth(request.depth))
-    colour = np.zeros((*small_depth.shape, 3), np.uint8)
-    cloud = back_project(colour, small_depth, working_view(scene, (0.0, 0.0, 0.0), scale),
-                         keep=~depth_edges(small_depth))  # fmt: skip
-    disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
-    target = salient_target(request) if use_saliency else None
+    box = salient_box(request) if use_saliency else None
+    wide, tight = wide_and_tight(request, box)
+    coarse = CoarseScene.of(request.depth)
+    target = box_point(box, SALIENT_TARGET_HEIGHT) if box else None
     # Every candidate shares the wide crop, hence the output window.
-    region = visible_region(scene, ordered(wide, tight, "in", "linear", "auto"), scale)
-    region_pixels = region.sum()
+    region = coarse.region(wide, tight)
     candidates = []
     for dx, dy in search_offsets(request.preset.max_shift_px):
         crop = zoomed(tight, 1.0, (float(tight.center_x_px + dx), float(tight.center_y_px + dy)))
         if not crop.inside(width, height):
             continue
-        plan = ordered(wide, crop, "in", "linear", "auto")
-        view = working_view(scene, camera_position(plan, scene, 1.0), scale)
-        uncovered = ~coverage(cloud, view, disparity_scale) & region
-        disoccluded = float(uncovered.sum() / region_pixels)
+        disoccluded = coarse.disoccluded(wide, crop, region)
         score = disoccluded
         if target is not None:
             distance = np.hypot(crop.center_x_px - target[0], crop.center_y_px - target[1])
@@ -117,7 +186,11 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
             shift = np.hypot(dx, dy) / crop.width_px
             score += MOTION_WEIGHT * max(0.0, 1.0 - shift / MIN_VISIBLE_SHIFT_FRACTION)
         candidates.append(Candidate(crop, disoccluded, score))
-    return wide, candidates
+    if box is not None:
+        head = box_point(box, HEAD_HEIGHT)
+        framed = [c for c in candidates if keeps(c.crop, head)]
+        candidates = framed or candidates
+    return wide, candidates, tight
 
 
 def best(candidates: list[Candidate], tight: Crop) -> Crop:
@@ -138,8 +211,7 @@ class AutoPlanner:
         self.use_motion = use_motion
 
     def plan(self, request: PlanRequest) -> Plan:
-        wide, candidates = score_candidates(request, self.use_saliency, self.use_motion)
-        _, tight = wide_and_tight(request)
+        wide, candidates, tight = score_candidates(request, self.use_saliency, self.use_motion)
         chosen = best(candidates, tight)
         return ordered(wide, chosen, request.preset.zoom_direction, request.preset.easing,
                        self.name)  # fmt: skip

@@ -6,6 +6,7 @@ from kbbatch.camera import (
     Crop,
     Plan,
     SceneGeometry,
+    camera_position,
     depth_from_disparity,
     ease,
     fit_crop,
@@ -126,3 +127,20 @@ def test_fit_crop_keeps_aspect_inside_image():
         assert crop.width_px / crop.height_px == pytest.approx(aspect)
         assert crop.inside(W, H)
         assert max(crop.width_px / W, crop.height_px / H) == pytest.approx(0.97)
+
+
+def test_off_centre_framing_is_a_lens_shift_not_a_camera_move():
+    start = Crop(330.0, 250.0, 560.0, 350.0)  # the widest crop, well off the image centre
+    end = zoomed(start, 1.25, (start.center_x_px + 30, start.center_y_px + 12))
+    plan = Plan(start, end)
+    assert camera_position(plan, SCENE, 0.0) == (0.0, 0.0, 0.0), "t=0 is the photo, framed"
+    far = unproject(SCENE, np.array([start.center_x_px]), np.array([start.center_y_px]),
+                    np.array([1e9]))  # fmt: skip
+    for t in (0.0, 0.5, 1.0):
+        u, v = project(output_view(plan, SCENE, t, 1120, 700), *far)
+        assert (u[0], v[0]) == (pytest.approx(560.0, abs=1e-3), pytest.approx(350.0, abs=1e-3))
+    u_src, v_src = np.array([250.0, 400.0]), np.array([200.0, 300.0])
+    points = unproject(SCENE, u_src, v_src, np.full(2, SCENE.nearest_depth))
+    u, v = project(output_view(plan, SCENE, 1.0, 1120, 700), *points)
+    np.testing.assert_allclose(u, (u_src - end.center_x_px) * 1120 / end.width_px + 560,
+                               atol=1e-6)  # fmt: skip

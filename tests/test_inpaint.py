@@ -163,3 +163,12 @@ def test_cached_colour_network_fills_the_holes(tmp_path, monkeypatch):
     inner = hole & (cv2.erode(hole.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0)
     assert inner.sum() > 50
     np.testing.assert_allclose(after.colour[inner].mean(axis=0), (51, 102, 153), atol=8)
+
+
+def test_a_cloud_whose_height_rounds_differently_still_builds():
+    image, depth, scene, plan = card_scene()
+    # 1.93 x 320 = 617.6 -> 618 wide; 200 x 618 / 320 = 386.25, while a photo resized on its
+    # own may come out 1 px taller or shorter.
+    photo = cv2.resize(image, (618, 387), interpolation=cv2.INTER_LINEAR)
+    extension = build_extended_cloud(photo, depth, plan, scene)
+    assert len(extension.cloud) >= 618 * 386
