@@ -44,7 +44,7 @@ def ground_truth(sample: Path) -> tuple[np.ndarray, str]:
 
 
 def align(prediction_disparity: np.ndarray, truth: np.ndarray, space: str, valid: np.ndarray
-          ) -> np.ndarray:  # fmt: skip
+          ) -> np.ndarray:
     """Least-squares scale and shift of the prediction, in the truth's space."""
     predicted = prediction_disparity if space == "disparity" else 1.0 / np.maximum(
         prediction_disparity, 1e-3)
@@ -123,10 +123,10 @@ def refinement_rows() -> None:
             continue  # sparse ground truth (KITTI) says nothing about edges
         image = read_image(next(sample.glob("rgb.*")))
         filled = cv2.inpaint(disparity.astype(np.float32), (~valid).astype(np.uint8), 3,
-                             cv2.INPAINT_NS)  # fmt: skip
+                             cv2.INPAINT_NS)
         height, width = filled.shape
         small = cv2.resize(filled, (width // REFINE_FACTOR, height // REFINE_FACTOR),
-                           interpolation=cv2.INTER_AREA)  # fmt: skip
+                           interpolation=cv2.INTER_AREA)
         candidates = {
             "bilinear": cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR),
             "refine (ours)": refine(small, image),
@@ -136,7 +136,7 @@ def refinement_rows() -> None:
             rel = float(np.mean(np.abs(upsampled[valid] - disparity[valid]) / disparity[valid]))
             predicted_edges = edges(np.maximum(upsampled, 1e-6), valid)
             scores[name].append([rel, edge_distance(predicted_edges, true_edges),
-                                 edge_distance(true_edges, predicted_edges)])  # fmt: skip
+                                 edge_distance(true_edges, predicted_edges)])
     for name, rows in scores.items():
         rel, accuracy, completeness = np.nanmean(rows, axis=0)
         print(f"{name:<20}{rel:>10.4f}{accuracy:>13.2f}{completeness:>14.2f}")
@@ -160,7 +160,7 @@ def main() -> int:
             prediction = backend(working)
             seconds.setdefault(name, []).append(time.perf_counter() - started)
             prediction = cv2.resize(prediction, (truth.shape[1], truth.shape[0]),
-                                    interpolation=cv2.INTER_LINEAR)  # fmt: skip
+                                    interpolation=cv2.INTER_LINEAR)
             row = metrics(np.maximum(prediction, 1e-3), truth, space)
             row["sample"] = f"{sample.parent.name}/{sample.name}"
             results.setdefault(name, []).append(row)

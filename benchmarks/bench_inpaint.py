@@ -32,7 +32,7 @@ from kbbatch.render import render_frame as render_view_frame
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 CLIP_PHOTOS = ("03_portrait_two_people_obama_biden.jpg", "10_animal_giraffe.jpg",
-               "33_landscape_sign_in_field.jpg")  # fmt: skip
+               "33_landscape_sign_in_field.jpg")
 VIEWS = {
     "middlebury2003_cones_Q": ("im2.png", "im6.png", "disp2.png", 0.25),
     "middlebury2003_teddy_Q": ("im2.png", "im6.png", "disp2.png", 0.25),
@@ -40,7 +40,7 @@ VIEWS = {
     "middlebury2014_motorcycle_Q": ("im0.png", "im1.png", "disp0GT.pfm", 1.0),
     "kitti2015_000046": ("image_2_000046_10.png", "image_3_000046_10.png",
                          "disp_occ_0_000046_10.png", 1 / 256),
-}  # fmt: skip
+}
 
 
 def read_pfm(path: Path) -> np.ndarray:
@@ -65,7 +65,7 @@ def clip_rows() -> None:
     options = ClipOptions(planner="auto")
     print("clip coverage (preview 640x360, auto planner)")
     print(f"{'photo':<40}{'uncov plain':>13}{'max':>8}{'uncov ext':>11}{'max':>8}"
-          f"{'fill s @1024':>14}{'flicker':>9}{'same':>6}")  # fmt: skip
+          f"{'fill s @1024':>14}{'flicker':>9}{'same':>6}")
     for name in CLIP_PHOTOS:
         photo_path = SHARED / "photos" / name
         photo = read_image(photo_path)
@@ -89,10 +89,10 @@ def clip_rows() -> None:
                 changes.append(float(np.abs(frame - previous).mean()))
             previous = frame
         same = np.array_equal(render_frame(prepared, preset, 0.37),
-                              render_frame(prepared, preset, 0.37))  # fmt: skip
+                              render_frame(prepared, preset, 0.37))
         flicker = max(changes) / max(np.median(changes), 1e-9)
         print(f"{name[:39]:<40}{np.mean(before):>13.0f}{max(before):>8}{np.mean(after):>11.1f}"
-              f"{max(after):>8}{fill_seconds:>14.2f}{flicker:>9.2f}{str(same):>6}")  # fmt: skip
+              f"{max(after):>8}{fill_seconds:>14.2f}{flicker:>9.2f}{str(same):>6}")
 
 
 def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -107,7 +107,7 @@ def ssim_map(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     var_a, var_b = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2
     covariance = blur(a * b) - mu_a * mu_b
     return ((2 * mu_a * mu_b + c1) * (2 * covariance + c2)
-            / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2)))  # fmt: skip
+            / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2)))
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -118,7 +118,7 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 def view_rows() -> None:
     print("\nnovel view vs the real right image (PSNR dB / SSIM)")
     print(f"{'pair':<30}{'method':<12}{'PSNR seen':>10}{'SSIM seen':>10}{'PSNR disocc':>12}"
-          f"{'SSIM disocc':>12}{'disocc %':>9}")  # fmt: skip
+          f"{'SSIM disocc':>12}{'disocc %':>9}")
     totals: dict[str, list[list[float]]] = {}
     for folder, (left_name, right_name, disparity_name, scale) in VIEWS.items():
         base = SHARED / "eval" / "views" / folder
@@ -150,13 +150,13 @@ def view_rows() -> None:
             totals.setdefault(method, []).append(row)
             print(f"{folder[:29]:<30}{method:<12}" + "".join(f"{v:>10.2f}" if i < 2 else
                   f"{v:>12.3f}" if i == 3 else f"{v:>12.2f}" for i, v in enumerate(row))
-                  + f"{100 * disoccluded.mean():>9.2f}")  # fmt: skip
+                  + f"{100 * disoccluded.mean():>9.2f}")
     print("(KITTI's ground truth is sparse LiDAR: most of its 'disoccluded' pixels are simply "
           "unknown)")
     for method, rows in totals.items():
         means = np.mean(rows, axis=0)
         print(f"{'mean':<30}{method:<12}{means[0]:>10.2f}{means[1]:>10.3f}{means[2]:>12.2f}"
-              f"{means[3]:>12.3f}")  # fmt: skip
+              f"{means[3]:>12.3f}")
 
 
 def main() -> int:

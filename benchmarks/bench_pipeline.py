@@ -44,7 +44,7 @@ def zoompan_seconds(photo: Path, preset: Preset, output: Path) -> float:
         "-i", str(photo), "-vf", filters, "-frames:v", str(preset.frames_total),
         "-c:v", preset.codec, "-crf", str(preset.crf), "-pix_fmt", preset.pix_fmt,
         "-movflags", "+faststart",
-    ]  # fmt: skip
+    ]
     if preset.encoder_preset:
         command += ["-preset", preset.encoder_preset]
     started = time.perf_counter()
@@ -91,7 +91,7 @@ def main() -> int:
 
     print(f"photo {args.photo.name}, preset {preset.name} {preset.width_px}x{preset.height_px} "
           f"@ {preset.fps:g} fps, {preset.frames_forward} rendered / {preset.frames_total} "
-          f"encoded frames, {threads} threads, {len(prepared.cloud):,} points")  # fmt: skip
+          f"encoded frames, {threads} threads, {len(prepared.cloud):,} points")
     print(f"{'stage':<28}{'seconds':>10}")
     for stage, seconds in result.stage_seconds.items():
         print(f"{stage:<28}{seconds:>10.2f}")

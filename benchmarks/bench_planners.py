@@ -55,12 +55,12 @@ def main() -> int:
             values.append(plan_disocclusion(request, plan))
         rows.append([seconds, *values])
         print(f"{photo.name[:41]:<42}{seconds:>8.2f}" + "".join(
-            f"{v:>9.4f}" if i < 2 else f"{v:>11.4f}" for i, v in enumerate(values)))  # fmt: skip
+            f"{v:>9.4f}" if i < 2 else f"{v:>11.4f}" for i, v in enumerate(values)))
     table = np.array(rows)
     auto_better = int(np.sum(table[:, 1] < table[:, 2]))
     auto_tied = int(np.sum(table[:, 1] == table[:, 2]))
     print(f"{'mean':<42}{table[:, 0].mean():>8.2f}{table[:, 1].mean():>9.4f}"
-          f"{table[:, 2].mean():>9.4f}{table[:, 3].mean():>11.4f}")  # fmt: skip
+          f"{table[:, 2].mean():>9.4f}{table[:, 3].mean():>11.4f}")
     print(f"auto reveals less than center on {auto_better} of {len(rows)} photos "
           f"(tied on {auto_tied}); total planning {table[:, 0].sum():.1f} s")
     return 0

@@ -125,7 +125,7 @@ def prepare_scene(
     clock = time.perf_counter()
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
     photo_cloud = resize_to(photo, round(width * scale), round(height * round(width * scale)
-                                                               / width))  # fmt: skip
+                                                               / width))
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
@@ -133,7 +133,7 @@ def prepare_scene(
 
 
 def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions
-                     ) -> DepthResult:  # fmt: skip
+                     ) -> DepthResult:
     """The depth stage, through the on-disk cache when the photo is a file."""
     if photo_path is None or not options.cache_depth:
         return estimate_disparity(working, photo_path, options.depth)
@@ -208,7 +208,7 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     normalised = disparity / max(float(disparity.max()), 1e-6)
     stem = clip_path.with_suffix("")
     write_image(stem.with_name(stem.name + ".disparity.png"),
-                (normalised * 65535 + 0.5).astype(np.uint16))  # fmt: skip
+                (normalised * 65535 + 0.5).astype(np.uint16))
     preview = cv2.applyColorMap((normalised * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
     write_image(stem.with_name(stem.name + ".depth-preview.png"), preview[..., ::-1])
 
@@ -225,11 +225,11 @@ def output_names(sources: list[Path]) -> dict[Path, str]:
 
 def plan_summary(plan: Plan) -> dict:
     return {"planner": plan.planner, "easing": plan.easing, "parallax": plan.parallax,
-            "start": asdict(plan.start), "end": asdict(plan.end)}  # fmt: skip
+            "start": asdict(plan.start), "end": asdict(plan.end)}
 
 
 def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOptions
-                ) -> tuple[Preset, ClipOptions]:  # fmt: skip
+                ) -> tuple[Preset, ClipOptions]:
     """The preset and options for one photo, with its manifest entry's overrides."""
     if entry is None:
         return preset, options
@@ -274,7 +274,7 @@ def make_clip(
         if entry is not None and entry.has_crops:
             working_width, _ = compute_working_size(photo.shape[1], photo.shape[0])
             plan = entry.plan(photo.shape[1], photo.shape[0], working_width, preset.aspect,
-                              preset.easing)  # fmt: skip
+                              preset.easing)
         prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
         if options.save_depth:
@@ -282,7 +282,7 @@ def make_clip(
         result.plan = plan_summary(prepared.plan)
         clock = time.perf_counter()
         with tqdm(total=preset.frames_forward, desc=f"  frames {source.name}", unit="frame",
-                  leave=False, disable=not show_progress) as bar:  # fmt: skip
+                  leave=False, disable=not show_progress) as bar:
             frames = render_clip_frames(prepared, preset, options.threads, bar.update)
             with atomic_output(output, CLIP_SUFFIX) as temp_path:
                 result.frames = encode_frames(temp_path, frames, preset)
@@ -314,7 +314,7 @@ class RunReport:
         return json.dumps(
             {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,
              "clips": [asdict(r) for r in self.results]}, indent=2,
-        )  # fmt: skip
+        )
 
 
 REPORT_NAME = "kbbatch-report.json"
@@ -332,7 +332,7 @@ def check_writable(folder: Path) -> None:
             pass
     except OSError as error:
         raise OutputFolderError(f"{folder}: output folder is not writable "
-                                f"({error.strerror or error})") from error  # fmt: skip
+                                f"({error.strerror or error})") from error
 
 
 def clip_settings(preset: Preset, options: ClipOptions, entry: ManifestEntry | None) -> str:
@@ -340,7 +340,7 @@ def clip_settings(preset: Preset, options: ClipOptions, entry: ManifestEntry | N
     from kbbatch.journal import settings_fingerprint
 
     return settings_fingerprint(asdict(preset), options.planner, asdict(options.depth),
-                                entry.data if entry else None)  # fmt: skip
+                                entry.data if entry else None)
 
 
 def run_folder(
@@ -369,7 +369,7 @@ def run_folder(
         for name in manifest.missing_images(folder):
             results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                       error=f"{manifest.path}: image {name!r}: no such photo "
-                                      f"in {folder}"))  # fmt: skip
+                                      f"in {folder}"))
     try:
         for source in tqdm(sources, desc="photos", unit="photo", disable=not show_progress):
             entry = manifest.entry(source.name) if manifest else None
@@ -382,7 +382,7 @@ def run_folder(
             journal.start(source.name, fingerprint, settings, output.name)
             result = make_clip(source, output, preset, options, show_progress, entry)
             journal.finish(source.name, "done" if result.status == "done" else "failed",
-                           result.seconds, result.error)  # fmt: skip
+                           result.seconds, result.error)
             results.append(result)
             if fail_fast and result.status != "done":
                 break
@@ -403,7 +403,7 @@ class PlanResult:
 
 
 def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
-                show_progress: bool = True) -> list[PlanResult]:  # fmt: skip
+                show_progress: bool = True) -> list[PlanResult]:
     """Plan every photo and write the plans as an editable manifest, with previews."""
     from kbbatch.images import write_image
     from kbbatch.manifest import plan_to_entry, write_manifest
@@ -414,7 +414,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     entries: dict[str, dict] = {}
     previews = []
     for source in tqdm(list_images(folder), desc="planning", unit="photo",
-                       disable=not show_progress):  # fmt: skip
+                       disable=not show_progress):
         started = time.perf_counter()
         try:
             photo = read_image(source)
@@ -429,7 +429,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             write_image(preview_dir / f"{source.stem}.jpg", preview)
             previews.append(preview)
             results.append(PlanResult(str(source), "done", entry=entry,
-                                      seconds=time.perf_counter() - started))  # fmt: skip
+                                      seconds=time.perf_counter() - started))
         except (ImageReadError, DepthError) as error:
             results.append(PlanResult(str(source), "failed", error=str(error)))
         except Exception as error:  # one photo must never stop the batch
@@ -438,5 +438,5 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     write_manifest(manifest_path, entries)
     if previews:
         write_image(manifest_path.with_name(manifest_path.stem + "-contact.jpg"),
-                    contact_sheet(previews))  # fmt: skip
+                    contact_sheet(previews))
     return results

@@ -282,7 +282,7 @@ def project(view: View, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np
 
 
 def unproject(scene: SceneGeometry, u_px: np.ndarray, v_px: np.ndarray, depth: np.ndarray
-              ) -> tuple[np.ndarray, ...]:  # fmt: skip
+              ) -> tuple[np.ndarray, ...]:
     """World points seen at working-image coordinates (u, v) with the given depth."""
     f = scene.focal_px
     return (

@@ -22,7 +22,7 @@ class DefaultCommandGroup(click.Group):
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         if args and args[0] not in self.commands and args[0] not in ("--help", "-h",
-                                                                      "--version"):  # fmt: skip
+                                                                      "--version"):
             args = ["render", *args]
         return super().parse_args(ctx, args)
 
@@ -75,12 +75,12 @@ def render(folder: Path, output: Path | None, preset_name: str, planner: str,
            manifest_path: Path | None, depth_backend: str, depth_model: str | None,
            no_adjust: bool, no_refine: bool, save_depth: bool, duration: float | None,
            fps: float | None, threads: int, force: bool, fail_fast: bool,
-           quiet: bool) -> None:  # fmt: skip
+           quiet: bool) -> None:
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
     preset = _load_preset(preset_name, duration, fps)
     output = output or folder / "kenburns"
     depth = DepthOptions(backend=depth_backend, model=depth_model, adjust=not no_adjust,
-                         refine=not no_refine)  # fmt: skip
+                         refine=not no_refine)
     options = ClipOptions(planner=planner, depth=depth, threads=threads, save_depth=save_depth)
     manifest = _load_manifest(manifest_path)
     try:
@@ -111,7 +111,7 @@ def _load_manifest(path: Path | None):
               default="auto", show_default=True)
 @click.option("--quiet", is_flag=True)
 def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, depth_backend: str,
-         quiet: bool) -> None:  # fmt: skip
+         quiet: bool) -> None:
     """Plan every photo in FOLDER and write an editable manifest with preview pictures.
 
     Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`.
@@ -121,7 +121,7 @@ def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, dept
     results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
     done = [r for r in results if r.status == "done"]
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
-               f"{manifest_path.with_name(manifest_path.stem + '-previews')}")  # fmt: skip
+               f"{manifest_path.with_name(manifest_path.stem + '-previews')}")
     for result in results:
         if result.status != "done":
             click.echo(f"FAILED {result.error}", err=True)
@@ -132,7 +132,7 @@ def _print_summary(report: RunReport) -> None:
     done = [r for r in report.results if r.status == "done"]
     skipped = [r for r in report.results if r.status == "skipped"]
     click.echo(f"\n{len(done)} clip(s) made in {report.output_folder}, {len(skipped)} already "
-               f"up to date, {len(report.failed)} failed, preset {report.preset}")  # fmt: skip
+               f"up to date, {len(report.failed)} failed, preset {report.preset}")
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")
@@ -198,7 +198,7 @@ def models_pull(name: str, sha256: str | None) -> None:
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
 def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | None, planner: str,
           depth_backend: str, jobs: int, poll: bool, settle_s: float, keep_sources: bool
-          ) -> None:  # fmt: skip
+          ) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
     import logging
 
@@ -209,7 +209,7 @@ def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | Non
     preset = _load_preset(preset_name, None, None)
     options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
     settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
-                             jobs, poll, settle_s, keep_sources)  # fmt: skip
+                             jobs, poll, settle_s, keep_sources)
     try:
         sys.exit(run_daemon(settings))
     except OutputFolderError as error:

@@ -45,7 +45,7 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
     stream = ffmpeg.input(
         "pipe:", format="rawvideo", pix_fmt="rgb24",
         s=f"{preset.width_px}x{preset.height_px}", framerate=preset.fps,
-    )  # fmt: skip
+    )
     options: dict[str, object] = {
         "vcodec": preset.codec,
         "pix_fmt": preset.pix_fmt,
@@ -125,7 +125,7 @@ def decode_frames(path: Path, width_px: int, height_px: int) -> Iterator[np.ndar
         [ffmpeg_exe(), "-loglevel", "error", "-i", str(path), "-f", "rawvideo",
          "-pix_fmt", "rgb24", "pipe:"],
         stdout=subprocess.PIPE,
-    )  # fmt: skip
+    )
     frame_bytes = width_px * height_px * 3
     try:
         while True:

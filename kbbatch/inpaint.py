@@ -211,7 +211,7 @@ def extend_at_view(
     hole_count = int(hole.sum())
     if hole_count == 0:
         return PointCloud(*(np.empty(0, np.float32) for _ in range(3)),
-                          np.empty((0, 3), np.uint8)), 0  # fmt: skip
+                          np.empty((0, 3), np.uint8)), 0
     height, width = hole.shape
     small_size = (max(1, round(width * working_scale)), max(1, round(height * working_scale)))
     # A working-size pixel is a hole if any of its view pixels is, so that no source colour
@@ -303,10 +303,10 @@ def build_extended_cloud(
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
     snapped = snap_edge_depth(depth)
     cloud_depth = cv2.resize(snapped, (photo.shape[1], photo.shape[0]),
-                             interpolation=cv2.INTER_NEAREST)  # fmt: skip
+                             interpolation=cv2.INTER_NEAREST)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
     cloud = back_project(photo, cloud_depth, photo_view,
-                         keep=source_window(scene, plan, cloud_scale))  # fmt: skip
+                         keep=source_window(scene, plan, cloud_scale))
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)
@@ -360,7 +360,7 @@ class OnnxInpainter:
         if float(output.max()) <= 1.5:
             output = output * 255
         filled = cv2.resize(np.clip(output, 0, 255).astype(np.float32), (width, height),
-                            interpolation=cv2.INTER_LINEAR)  # fmt: skip
+                            interpolation=cv2.INTER_LINEAR)
         return np.where(mask[..., None] > 0, filled, image.astype(np.float32))
 
 

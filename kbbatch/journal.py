@@ -72,12 +72,12 @@ class Journal:
     def start(self, source: str, fingerprint: str, settings: str, output: str) -> None:
         attempts = self.connection.execute(
             "SELECT attempts FROM jobs WHERE source = ? AND fingerprint = ?",
-            (source, fingerprint)).fetchone()  # fmt: skip
+            (source, fingerprint)).fetchone()
         self.connection.execute(
             "INSERT OR REPLACE INTO jobs VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?)",
             (source, fingerprint, settings, output, (attempts[0] if attempts else 0) + 1,
              time.time()),
-        )  # fmt: skip
+        )
 
     def finish(self, source: str, state: str, seconds: float, error: str | None = None) -> None:
         self.connection.execute(
@@ -97,4 +97,4 @@ class Journal:
     def is_up_to_date(self, source: str, fingerprint: str, settings: str, output: Path) -> bool:
         job = self.get(source)
         return (job is not None and job.state == "done" and job.fingerprint == fingerprint
-                and job.settings == settings and output.is_file())  # fmt: skip
+                and job.settings == settings and output.is_file())

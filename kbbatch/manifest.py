@@ -41,7 +41,7 @@ class ManifestEntry:
         return (self.manifest.parent / depth).resolve() if depth else None
 
     def plan(self, source_width_px: int, source_height_px: int, working_width_px: int,
-             aspect: float, easing: str) -> Plan:  # fmt: skip
+             aspect: float, easing: str) -> Plan:
         """The entry's crops as a plan in working pixels, checked against the photo."""
         to_working = working_width_px / source_width_px
         crops = []
@@ -55,21 +55,21 @@ class ManifestEntry:
             height = crop["height"] * scale_y if "height" in crop else width / aspect
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
                 raise ManifestError(f"{self.where(field)}: aspect {width / height:.3f} differs "
-                                    f"from the output's {aspect:.3f}")  # fmt: skip
+                                    f"from the output's {aspect:.3f}")
             source_crop = Crop(crop["center_x"] * scale_x, crop["center_y"] * scale_y, width,
-                               height)  # fmt: skip
+                               height)
             if not source_crop.inside(source_width_px, source_height_px, tolerance_px=0.5):
                 size = f"{source_width_px}x{source_height_px}"
                 raise ManifestError(f"{self.where(field)}: crop {_describe(source_crop)} lies "
                                     f"outside the {size} photo")
             crops.append(source_crop.scaled(to_working))
         return Plan(crops[0], crops[1], easing=self.data.get("easing", easing),
-                    planner="manifest")  # fmt: skip
+                    planner="manifest")
 
 
 def _describe(crop: Crop) -> str:
     return (f"[{crop.left_px:.0f}, {crop.top_px:.0f}, {crop.right_px:.0f}, "
-            f"{crop.bottom_px:.0f}]")  # fmt: skip
+            f"{crop.bottom_px:.0f}]")
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ def load_manifest(path: Path) -> Manifest:
         raise ManifestError(f"{path}: cannot be read ({error.strerror})") from error
     except json.JSONDecodeError as error:
         raise ManifestError(f"{path}: malformed JSON at line {error.lineno} column "
-                            f"{error.colno}: {error.msg}") from error  # fmt: skip
+                            f"{error.colno}: {error.msg}") from error
     validator = jsonschema.Draft202012Validator(schema())
     errors = sorted(validator.iter_errors(data), key=lambda e: list(e.absolute_path))
     if errors:
@@ -111,7 +111,7 @@ def load_manifest(path: Path) -> Manifest:
             where = f"field '{'.'.join(str(p) for p in location) or '(top level)'}'"
         raise ManifestError(f"{path}: {where}: {error.message}")
     entries = {name: ManifestEntry(name, entry, Path(path)) for name, entry in
-               data["images"].items()}  # fmt: skip
+               data["images"].items()}
     return Manifest(Path(path), entries)
 
 
@@ -122,10 +122,10 @@ def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> di
     def crop(c: Crop) -> dict[str, float]:
         s = c.scaled(to_source)
         return {"center_x": round(s.center_x_px, 2), "center_y": round(s.center_y_px, 2),
-                "width": round(s.width_px, 2), "height": round(s.height_px, 2)}  # fmt: skip
+                "width": round(s.width_px, 2), "height": round(s.height_px, 2)}
 
     return {"units": "px", "start": crop(plan.start), "end": crop(plan.end),
-            "easing": plan.easing}  # fmt: skip
+            "easing": plan.easing}
 
 
 def write_manifest(path: Path, entries: dict[str, dict[str, Any]]) -> None:

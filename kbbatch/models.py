@@ -82,7 +82,7 @@ REGISTRY: dict[str, ModelSpec] = {
             "lama", "lama_fp32.onnx", "inpaint", "Apache-2.0", None, None,
             input_size=512, output="RGB image 0..255 (LaMa / MI-GAN convention: image + mask)",
         ),
-    )  # fmt: skip
+    )
 }
 
 
@@ -112,7 +112,7 @@ def sha256_of(path: Path) -> str:
 
 
 def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = None,
-         progress: bool = True) -> Path:  # fmt: skip
+         progress: bool = True) -> Path:
     """Download a model into the cache, keeping it only if its sha256 is the expected one.
 
     The expected hash is the registry's, or the one given (for models we cannot pin).
@@ -124,13 +124,13 @@ def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = No
     expected = (sha256 or spec.sha256 or "").lower() or None
     if spec.url is None:
         raise ModelError(f"{spec.name} has no single-file download; put {spec.filename} "
-                         f"in {directory} yourself")  # fmt: skip
+                         f"in {directory} yourself")
     directory.mkdir(parents=True, exist_ok=True)
     try:
         path = Path(pooch.retrieve(
             spec.url, known_hash=f"sha256:{expected}" if expected else None,
             fname=spec.filename, path=directory, progressbar=progress,
-        ))  # fmt: skip
+        ))
     except ValueError as error:  # pooch's checksum mismatch
         raise ModelError(f"{spec.name}: download refused, sha256 mismatch ({error})") from error
     except Exception as error:
@@ -170,7 +170,7 @@ def load(name: str):
     path = cached_path(name)
     if path is None:
         raise ModelError(f"model {name} is not in {models_dir()}; run `kbbatch models pull "
-                         f"{name}` (or set {MODELS_ENV})")  # fmt: skip
+                         f"{name}` (or set {MODELS_ENV})")
     return session(path)
 
 
@@ -181,7 +181,7 @@ def prepare_input(spec: ModelSpec, image_rgb, size: tuple[int, int] | None = Non
 
     width, height = size or (spec.input_size, spec.input_size)
     resized = cv2.resize(image_rgb, (width, height), interpolation=cv2.INTER_AREA
-                         if width < image_rgb.shape[1] else cv2.INTER_LINEAR)  # fmt: skip
+                         if width < image_rgb.shape[1] else cv2.INTER_LINEAR)
     if spec.channels == "BGR":
         resized = resized[..., ::-1]
     data = (resized.astype(np.float32) * spec.scale - np.float32(spec.mean)) / np.float32(spec.std)

@@ -33,17 +33,17 @@ class Preset:
     height_px: int = _setting("output height", min=16, max=8192, even=True)
     fps: float = _setting("frames per second", min=1, max=120)
     duration_s: float = _setting("forward move in seconds (the clip plays it back too)",
-                                 min=0.2, max=120)  # fmt: skip
+                                 min=0.2, max=120)
     easing: str = _setting("speed curve of the move", choices=EASINGS)
     zoom: float = _setting("crop-width ratio between the wide and the tight view", min=1.0,
-                           max=4.0)  # fmt: skip
+                           max=4.0)
     zoom_direction: str = _setting("'in' ends on the tight view, 'out' starts on it",
-                                   choices=ZOOM_DIRECTIONS)  # fmt: skip
+                                   choices=ZOOM_DIRECTIONS)
     max_shift_px: float = _setting("largest lateral move of the crop centre, working px",
-                                   min=0, max=512)  # fmt: skip
+                                   min=0, max=512)
     codec: str = _setting("ffmpeg video encoder, e.g. libx264, libx265, libvpx-vp9")
     crf: int = _setting("encoder constant-rate factor (lower is better and larger)", min=0,
-                        max=63)  # fmt: skip
+                        max=63)
     pix_fmt: str = _setting("pixel format of the encoded video")
     encoder_preset: str = _setting("encoder speed preset (x264/x265), empty for none")
 
@@ -72,7 +72,7 @@ def preset_from_mapping(data: dict[str, Any], source: str) -> Preset:
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise PresetError(f"{source}: unknown setting(s) {', '.join(unknown)}; "
-                          f"known: {', '.join(known)}")  # fmt: skip
+                          f"known: {', '.join(known)}")
     missing = [name for name in known if name not in data]
     if missing:
         raise PresetError(f"{source}: missing setting(s) {', '.join(missing)}")
@@ -144,4 +144,4 @@ def with_overrides(preset: Preset, **overrides: Any) -> Preset:
 
 
 __all__ = ["Preset", "PresetError", "builtin_names", "load_preset", "replace", "settings",
-           "with_overrides"]  # fmt: skip
+           "with_overrides"]

@@ -131,7 +131,7 @@ def _splat_view(
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
         accumulator, front, clear,
-    )  # fmt: skip
+    )
 
 
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
@@ -195,7 +195,7 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
 def _splat_kernel(
     xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
     accumulator, front, clear,
-):  # fmt: skip
+):
     # Written out by hand on purpose: helper functions and float64 promotion made this loop
     # two to three times slower. All arithmetic stays in float32.
     height, width = front.shape

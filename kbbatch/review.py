@@ -15,7 +15,7 @@ THUMBNAIL_WIDTH_PX = 360
 
 
 def _rectangle(image: np.ndarray, crop: Crop, colour: tuple[int, int, int], thickness: int
-               ) -> None:  # fmt: skip
+               ) -> None:
     top_left = (round(crop.left_px), round(crop.top_px))
     bottom_right = (round(crop.right_px) - 1, round(crop.bottom_px) - 1)
     cv2.rectangle(image, top_left, bottom_right, colour, thickness, cv2.LINE_AA)
@@ -31,7 +31,7 @@ def draw_plan(image: np.ndarray, plan: Plan, label: str) -> np.ndarray:
     end = (round(plan.end.center_x_px), round(plan.end.center_y_px))
     cv2.arrowedLine(canvas, start, end, (255, 255, 255), thickness, cv2.LINE_AA, tipLength=0.3)
     cv2.putText(canvas, label, (10, 10 + 12 * thickness), cv2.FONT_HERSHEY_SIMPLEX,
-                0.4 * thickness, (255, 255, 255), thickness, cv2.LINE_AA)  # fmt: skip
+                0.4 * thickness, (255, 255, 255), thickness, cv2.LINE_AA)
     return canvas
 
 
@@ -42,13 +42,13 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 4) -> np.ndarray:
     columns = min(columns, len(pictures))
     thumbs = [cv2.resize(p, (THUMBNAIL_WIDTH_PX, max(1, round(p.shape[0] * THUMBNAIL_WIDTH_PX
                                                                / p.shape[1]))),
-                         interpolation=cv2.INTER_AREA) for p in pictures]  # fmt: skip
+                         interpolation=cv2.INTER_AREA) for p in pictures]
     rows = []
     for start in range(0, len(thumbs), columns):
         row = thumbs[start : start + columns]
         height = max(t.shape[0] for t in row)
         padded = [cv2.copyMakeBorder(t, 0, height - t.shape[0], 0, 0, cv2.BORDER_CONSTANT)
-                  for t in row]  # fmt: skip
+                  for t in row]
         padded += [np.zeros((height, THUMBNAIL_WIDTH_PX, 3), np.uint8)] * (columns - len(row))
         rows.append(np.concatenate(padded, axis=1))
     sheet = np.concatenate(rows, axis=0)

@@ -29,12 +29,12 @@ COCO_CLASSES = (
     "potted plant", "bed", "dining table", "toilet", "tv", "laptop", "mouse", "remote",
     "keyboard", "cell phone", "microwave", "oven", "toaster", "sink", "refrigerator", "book",
     "clock", "vase", "scissors", "teddy bear", "hair drier", "toothbrush",
-)  # fmt: skip
+)
 
 VOC_INDEX_OF = {
     "person": 15, "car": 7, "bus": 6, "train": 19, "boat": 4, "bird": 3, "cat": 8, "dog": 12,
     "horse": 13, "sheep": 17, "cow": 10, "bicycle": 2, "motorcycle": 14, "truck": 7,
-}  # fmt: skip
+}
 """PASCAL VOC class of a COCO class, where VOC has one (a truck is closest to a car)."""
 
 YOLOX_STRIDES = (8, 16, 32)
@@ -110,7 +110,7 @@ def detect(image: np.ndarray) -> list[Detection]:
     height, width = image.shape[:2]
     ratio = min(size / height, size / width)
     resized = cv2.resize(image, (round(width * ratio), round(height * ratio)),
-                         interpolation=cv2.INTER_LINEAR)  # fmt: skip
+                         interpolation=cv2.INTER_LINEAR)
     canvas = np.full((size, size, 3), YOLOX_LETTERBOX_VALUE, np.uint8)
     canvas[: resized.shape[0], : resized.shape[1]] = resized
     batch = np.ascontiguousarray(canvas[..., ::-1].transpose(2, 0, 1)[None], dtype=np.float32)
@@ -168,7 +168,7 @@ def find_instances(image: np.ndarray) -> list[Instance]:
     objects = [
         d for d in detections
         if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
-    ]  # fmt: skip
+    ]
     accessories = [d for d in detections if d.class_name in paper.ACCESSORY_CLASSES]
     masks = [shape_mask(d) for d in objects]
     for accessory in accessories:

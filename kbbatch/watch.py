@@ -67,7 +67,7 @@ def _worker_init() -> None:
 
 
 def _render(source: Path, output: Path, preset: Preset, options: ClipOptions,
-            entry: ManifestEntry | None) -> ClipResult:  # fmt: skip
+            entry: ManifestEntry | None) -> ClipResult:
     return make_clip(source, output, preset, options, show_progress=False, entry=entry)
 
 
@@ -96,7 +96,7 @@ class Daemon:
     def request_stop(self, *_: object) -> None:
         if not self.stopping.is_set():
             log.info("stopping: no new work; finishing %d clip(s) in progress",
-                     len(self.in_flight))  # fmt: skip
+                     len(self.in_flight))
         self.stopping.set()
 
     def run(self) -> int:
@@ -113,7 +113,7 @@ class Daemon:
         threads = max(1, (os.cpu_count() or 1) // s.jobs)
         options = replace(s.options, threads=threads)
         log.info("watching %s -> %s (preset %s, %d job(s), %s)", s.inbox, s.outbox,
-                 s.preset.name, s.jobs, "polling" if s.poll else "inotify")  # fmt: skip
+                 s.preset.name, s.jobs, "polling" if s.poll else "inotify")
         with ProcessPoolExecutor(max_workers=s.jobs, initializer=_worker_init) as pool:
             while not self.stopping.is_set():
                 self.collect_events()
@@ -191,7 +191,7 @@ class Daemon:
             changed = previous is None or previous[:2] != (stat.st_size, stat.st_mtime_ns)
             since = now if changed else previous[2]
             self.pending[path] = (stat.st_size, stat.st_mtime_ns, since,
-                                  renamed or (previous[3] if previous else False))  # fmt: skip
+                                  renamed or (previous[3] if previous else False))
 
     def is_ready(self, path: Path) -> bool:
         size, mtime_ns, since, renamed = self.pending[path]
@@ -241,7 +241,7 @@ class Daemon:
                 result = future.result()
             except Exception as error:  # the worker itself died
                 result = ClipResult(str(path), None, "failed", 0.0,
-                                    error=f"{path}: worker failed: {error}")  # fmt: skip
+                                    error=f"{path}: worker failed: {error}")
             if result.status == "done":
                 self.journal.finish(path.name, "done", result.seconds)
                 self.move_source(path, DONE_FOLDER)
@@ -264,7 +264,7 @@ class Daemon:
     def write_failure_report(self, photo: Path, result: ClipResult) -> None:
         report = photo.with_name(photo.name + ".error.json")
         data = {"photo": photo.name, "error": result.error, "detail": result.detail,
-                "result": asdict(result)}  # fmt: skip
+                "result": asdict(result)}
         report.write_text(json.dumps(data, indent=2), encoding="utf-8")
 
 
@@ -280,7 +280,7 @@ def status_lines(outbox: Path) -> list[str]:
         lines = [", ".join(f"{state} {count}" for state, count in counts.items())]
         lines += [f"FAILED {job.source}: {job.error}" for job in journal.jobs("failed")]
         lines += [f"RUNNING {job.source} (attempt {job.attempts})"
-                  for job in journal.jobs("running")]  # fmt: skip
+                  for job in journal.jobs("running")]
         return lines
     finally:
         journal.close()

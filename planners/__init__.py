@@ -41,7 +41,7 @@ def get_planner(name: str) -> Planner:
 
     known: dict[str, Planner] = {
         "auto": AutoPlanner(), "center": CenterPlanner(), "2d": TwoDPlanner(),
-    }  # fmt: skip
+    }
     if name not in known:
         raise UnknownPlannerError(
             f"unknown planner {name!r}; available: {', '.join(sorted(known))}"

@@ -23,7 +23,7 @@ from kbbatch.camera import (
     nearest_depth,
     working_view,
     zoomed,
-)  # fmt: skip
+)
 from kbbatch.inpaint import visible_region
 from kbbatch.render import PointCloud, back_project, coverage, depth_edges
 from planners import PlanRequest
@@ -61,7 +61,7 @@ class Candidate:
 
 
 def wide_and_tight(request: PlanRequest, box: tuple[float, float, float, float] | None = None
-                   ) -> tuple[Crop, Crop]:  # fmt: skip
+                   ) -> tuple[Crop, Crop]:
     """The widest crop of the output aspect inside 97 % of the image, and it zoomed.
 
     When the crop cannot show the whole photo (a tall photo, a wide preset), it is placed so
@@ -77,7 +77,7 @@ def wide_and_tight(request: PlanRequest, box: tuple[float, float, float, float] 
         placed = zoomed(wide, 1.0, (head_x - margin_x, head_y + wide.height_px / 6 - margin_y))
         placed = clamp_inside(placed, width - 2 * margin_x, height - 2 * margin_y)
         wide = zoomed(placed, 1.0, (placed.center_x_px + margin_x,
-                                    placed.center_y_px + margin_y))  # fmt: skip
+                                    placed.center_y_px + margin_y))
     return wide, zoomed(wide, request.preset.zoom)
 
 
@@ -100,14 +100,14 @@ def salient_box(request: PlanRequest) -> tuple[float, float, float, float] | Non
     boxes = [
         d for d in detect(request.image)
         if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
-    ]  # fmt: skip
+    ]
     if not boxes:
         return None
     return max(boxes, key=lambda d: (d.box[2] - d.box[0]) * (d.box[3] - d.box[1])).box
 
 
 def box_point(box: tuple[float, float, float, float], height_fraction: float
-              ) -> tuple[float, float]:  # fmt: skip
+              ) -> tuple[float, float]:
     x0, y0, x1, y1 = box
     return (x0 + x1) / 2, y0 + height_fraction * (y1 - y0)
 
@@ -117,7 +117,7 @@ def keeps(crop: Crop, point: tuple[float, float]) -> bool:
     margin_x = HEAD_MARGIN_FRACTION * crop.width_px
     margin_y = HEAD_MARGIN_FRACTION * crop.height_px
     return (crop.left_px + margin_x <= point[0] <= crop.right_px - margin_x
-            and crop.top_px + margin_y <= point[1] <= crop.bottom_px - margin_y)  # fmt: skip
+            and crop.top_px + margin_y <= point[1] <= crop.bottom_px - margin_y)
 
 
 @dataclass(frozen=True)
@@ -137,12 +137,12 @@ class CoarseScene:
         scene = SceneGeometry(width, height, nearest_depth(depth))
         colour = np.zeros((*small_depth.shape, 3), np.uint8)
         cloud = back_project(colour, small_depth, working_view(scene, (0.0, 0.0, 0.0), scale),
-                             keep=~depth_edges(small_depth))  # fmt: skip
+                             keep=~depth_edges(small_depth))
         return cls(scene, cloud, scale)
 
     def region(self, wide: Crop, tight: Crop) -> np.ndarray:
         return visible_region(self.scene, ordered(wide, tight, "in", "linear", "auto"),
-                              self.scale)  # fmt: skip
+                              self.scale)
 
     def disoccluded(self, wide: Crop, tight: Crop, region: np.ndarray | None = None) -> float:
         """Fraction of the output window left uncovered at the tight crop's view."""
@@ -157,12 +157,12 @@ class CoarseScene:
 def plan_disocclusion(request: PlanRequest, plan: Plan) -> float:
     """How much unseen background a plan's tight view reveals (the paper's objective)."""
     wide, tight = ((plan.start, plan.end) if plan.start.width_px >= plan.end.width_px
-                   else (plan.end, plan.start))  # fmt: skip
+                   else (plan.end, plan.start))
     return CoarseScene.of(request.depth).disoccluded(wide, tight)
 
 
 def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion: bool = True
-                     ) -> tuple[Crop, list[Candidate], Crop]:  # fmt: skip
+                     ) -> tuple[Crop, list[Candidate], Crop]:
     """Score every tight-crop candidate; returns the wide crop, the candidates, and the
     unshifted tight crop they were searched around."""
     height, width = request.depth.shape
@@ -214,4 +214,4 @@ class AutoPlanner:
         wide, candidates, tight = score_candidates(request, self.use_saliency, self.use_motion)
         chosen = best(candidates, tight)
         return ordered(wide, chosen, request.preset.zoom_direction, request.preset.easing,
-                       self.name)  # fmt: skip
+                       self.name)

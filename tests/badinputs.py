@@ -10,7 +10,7 @@ from PIL import Image
 from .conftest import textured_image
 
 GOOD = ("grey.png", "alpha.png", "sixteen.png", "cmyk.jpg", "rotated.jpg", "name with spaces é.jpg",
-        "twin.jpg", "twin.png")  # fmt: skip
+        "twin.jpg", "twin.png")
 BAD = ("empty.jpg", "truncated.jpg", "text.jpg")
 
 

@@ -16,7 +16,7 @@ from kbbatch.camera import (
     unproject,
     working_view,
     zoomed,
-)  # fmt: skip
+)
 from kbbatch.inpaint import build_extended_cloud
 from kbbatch.render import back_project, render, to_uint8
 
@@ -40,7 +40,7 @@ def test_depth_normalisation_puts_nearest_point_at_f():
 def test_nearest_surface_moves_by_the_crop_centre_offset():
     start = fit_crop(W, H, 16 / 9, paper.START_CROP_FRACTION)
     end = Crop(start.center_x_px + 37.0, start.center_y_px - 21.0, start.width_px,
-               start.height_px)  # fmt: skip
+               start.height_px)
     plan = Plan(start, end)
     point = nearest_point(600.0, 300.0)
     out_w, out_h = 1920, 1080
@@ -54,7 +54,7 @@ def test_nearest_surface_moves_by_the_crop_centre_offset():
 def test_far_surfaces_move_less_than_the_nearest_one():
     start = fit_crop(W, H, 16 / 9, 0.97)
     plan = Plan(start, Crop(start.center_x_px + 50, start.center_y_px, start.width_px,
-                            start.height_px))  # fmt: skip
+                            start.height_px))
     far = unproject(SCENE, np.array([600.0]), np.array([300.0]), np.array([4 * 512.0]))
     u0, _ = project(output_view(plan, SCENE, 0.0, W, H), *far)
     u1, _ = project(output_view(plan, SCENE, 1.0, W, H), *far)
@@ -135,7 +135,7 @@ def test_off_centre_framing_is_a_lens_shift_not_a_camera_move():
     plan = Plan(start, end)
     assert camera_position(plan, SCENE, 0.0) == (0.0, 0.0, 0.0), "t=0 is the photo, framed"
     far = unproject(SCENE, np.array([start.center_x_px]), np.array([start.center_y_px]),
-                    np.array([1e9]))  # fmt: skip
+                    np.array([1e9]))
     for t in (0.0, 0.5, 1.0):
         u, v = project(output_view(plan, SCENE, t, 1120, 700), *far)
         assert (u[0], v[0]) == (pytest.approx(560.0, abs=1e-3), pytest.approx(350.0, abs=1e-3))
@@ -143,4 +143,4 @@ def test_off_centre_framing_is_a_lens_shift_not_a_camera_move():
     points = unproject(SCENE, u_src, v_src, np.full(2, SCENE.nearest_depth))
     u, v = project(output_view(plan, SCENE, 1.0, 1120, 700), *points)
     np.testing.assert_allclose(u, (u_src - end.center_x_px) * 1120 / end.width_px + 560,
-                               atol=1e-6)  # fmt: skip
+                               atol=1e-6)

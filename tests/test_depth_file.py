@@ -30,7 +30,7 @@ def test_user_disparity_npy_keeps_its_convention(tmp_path):
     (np.full((40, 60), np.nan, np.float32), "NaN"),
     (np.full((40, 60), 3.0, np.float32), "constant"),
     (np.linspace(1, 2, 40 * 40, dtype=np.float32).reshape(40, 40), "aspect"),
-])  # fmt: skip
+])
 def test_bad_depth_files_get_a_clear_error(tmp_path, data, reason):
     photo = tmp_path / "bad.jpg"
     np.save(tmp_path / "bad.depth.npy", data)

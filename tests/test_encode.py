@@ -22,7 +22,7 @@ def test_palindromic_clip_decodes_with_the_preset_facts(tmp_path):
         np.stack([(cols * 0.4 + 25 * k) % 256, (rows * 0.7) % 256,
                   np.full_like(rows, 30 * k % 256)], axis=-1).astype(np.uint8)
         for k in range(count)
-    ]  # fmt: skip
+    ]
     path = tmp_path / "clip.mp4"
     written = encode_frames(path, (forward[i] for i in palindrome_order(count)), preset)
     assert written == preset.frames_total == 2 * count - 2

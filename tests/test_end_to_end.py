@@ -22,7 +22,7 @@ def test_two_real_photos_and_a_corrupt_one(tmp_path, quick_preset):
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
 
     report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
-                        show_progress=False)  # fmt: skip
+                        show_progress=False)
 
     assert [r.status for r in report.results].count("done") == 2
     [failed] = report.failed
@@ -47,7 +47,7 @@ def test_cli_exit_code_and_summary(tmp_path):
     shutil.copy(source, folder / source.name)
     (folder / "bad.png").write_bytes(b"")
     command = [sys.executable, "-m", "kbbatch", str(folder), "--preset", "preview",
-               "--duration", "0.4", "--fps", "10", "--quiet"]  # fmt: skip
+               "--duration", "0.4", "--fps", "10", "--quiet"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert result.returncode == 1
     assert "1 clip(s) made" in result.stdout
@@ -66,7 +66,7 @@ def test_save_depth_writes_a_16_bit_disparity_and_a_preview(tmp_path, quick_pres
     report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False)
     assert report.results[0].status == "done"
     disparity = cv2.imread(str(tmp_path / "out" / f"{source.stem}.disparity.png"),
-                           cv2.IMREAD_UNCHANGED)  # fmt: skip
+                           cv2.IMREAD_UNCHANGED)
     assert disparity.dtype == np.uint16 and disparity.max() == 65535
     assert max(disparity.shape) == 1024 and len(np.unique(disparity)) > 10
     preview = cv2.imread(str(tmp_path / "out" / f"{source.stem}.depth-preview.png"))

@@ -44,7 +44,7 @@ def test_sixteen_bit_grey_alpha_and_cmyk_become_rgb8(tmp_path):
 @pytest.mark.parametrize("name, content, reason", [
     ("empty.jpg", b"", "empty"),
     ("text.jpg", b"this is not a photo", "not an image"),
-])  # fmt: skip
+])
 def test_unreadable_files_name_the_file_and_reason(tmp_path, name, content, reason):
     (tmp_path / name).write_bytes(content)
     with pytest.raises(ImageReadError, match=reason) as caught:

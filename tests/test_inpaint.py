@@ -11,7 +11,7 @@ from kbbatch.camera import (
     SceneGeometry,
     camera_position,
     depth_from_disparity,
-    nearest_depth,  # fmt: skip
+    nearest_depth,
     output_view,
     overshoot,
     working_view,
@@ -45,7 +45,7 @@ def card_scene():
 
 def end_position(scene, plan):
     return overshoot(camera_position(plan, scene, 0.0), camera_position(plan, scene, 1.0),
-                     paper.EXTREME_VIEW_OVERSHOOT)  # fmt: skip
+                     paper.EXTREME_VIEW_OVERSHOOT)
 
 
 def end_view_rendering(cloud, scene, plan):
@@ -88,9 +88,9 @@ def test_extension_adds_points_only_where_the_extreme_views_had_holes():
 def test_strong_move_leaves_no_empty_pixel_in_any_frame():
     image, depth, scene, plan = card_scene()
     preset = with_overrides(load_preset("preview"), width_px=320, height_px=200, fps=10.0,
-                            duration_s=1.0)  # fmt: skip
+                            duration_s=1.0)
     plan = Plan(plan.start, Crop(W / 2 + 40, H / 2 - 15, plan.end.width_px,
-                                 plan.end.height_px))  # fmt: skip
+                                 plan.end.height_px))
     cloud = build_extended_cloud(image, depth, plan, scene).cloud
     prepared = PreparedScene(plan, scene, cloud, "test", 1.0 / depth)
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
@@ -124,7 +124,7 @@ def tiny_inpainting_model() -> bytes:
     from onnx import TensorProto, helper, numpy_helper
 
     colour = numpy_helper.from_array(np.array([0.2, 0.4, 0.6], np.float32).reshape(1, 3, 1, 1),
-                                     "colour")  # fmt: skip
+                                     "colour")
     one = numpy_helper.from_array(np.array(1.0, np.float32), "one")
     nodes = [
         helper.make_node("Sub", ["one", "mask"], ["keep"]),
@@ -138,7 +138,7 @@ def tiny_inpainting_model() -> bytes:
          helper.make_tensor_value_info("mask", TensorProto.FLOAT, [1, 1, 512, 512])],
         [helper.make_tensor_value_info("output", TensorProto.FLOAT, [1, 3, 512, 512])],
         initializer=[colour, one],
-    )  # fmt: skip
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
     model.ir_version = 8
     return model.SerializeToString()

@@ -25,7 +25,7 @@ def tiny_depth_model() -> bytes:
         "tiny-depth",
         [helper.make_tensor_value_info("pixel_values", TensorProto.FLOAT, [1, 3, None, None])],
         [helper.make_tensor_value_info("predicted_depth", TensorProto.FLOAT, [1, None, None])],
-    )  # fmt: skip
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
     model.ir_version = 8
     return model.SerializeToString()
@@ -77,7 +77,7 @@ def test_pull_refuses_a_truncated_download(tmp_path, server):
     base, payload = server
     with pytest.raises(models.ModelError):
         models.pull(spec_for(f"{base}/truncated", hashlib.sha256(payload).hexdigest()),
-                    tmp_path, progress=False)  # fmt: skip
+                    tmp_path, progress=False)
     assert not list(tmp_path.glob("*.onnx"))
 
 
@@ -117,7 +117,7 @@ def test_onnx_backend_pre_and_post_processing(tmp_path, monkeypatch):
     assert result.disparity[:, :80].min() > result.disparity[:, 100:].max()
     with pytest.raises(models.ModelError, match="constant"):
         OnnxDepth("depth-anything-v2-small").disparity(np.full((50, 50, 3), 90, np.uint8),
-                                                       None, None)  # fmt: skip
+                                                       None, None)
 
 
 def test_tiny_model_is_valid_onnx():

@@ -85,7 +85,7 @@ CROP = {"center_x": 0.5, "center_y": 0.5, "width": 0.9}
     ({"images": {"a.jpg": {"start": CROP}}}, "image 'a.jpg'"),
     ({"images": {"a.jpg": {"zoom": 2}}}, "image 'a.jpg'"),
     ({"imagez": {}}, "top level"),
-])  # fmt: skip
+])
 def test_schema_errors_name_the_manifest_image_and_field(tmp_path, data, message):
     path = write(tmp_path / "m.json", data)
     with pytest.raises(ManifestError, match="m.json") as caught:
@@ -96,7 +96,7 @@ def test_schema_errors_name_the_manifest_image_and_field(tmp_path, data, message
 def test_crop_outside_the_photo_is_refused(tmp_path):
     path = write(tmp_path / "m.json", {"images": {"a.jpg": {
         "units": "px", "start": {"center_x": 100, "center_y": 100, "width": 400},
-        "end": {"center_x": 500, "center_y": 300, "width": 320}}}})  # fmt: skip
+        "end": {"center_x": 500, "center_y": 300, "width": 320}}}})
     entry = load_manifest(path).entry("a.jpg")
     with pytest.raises(ManifestError, match=r"image 'a.jpg': field 'start': crop .* outside"):
         entry.plan(1000, 600, 1024, 16 / 9, "linear")
@@ -120,7 +120,7 @@ def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
     data["images"]["missing.jpg"] = {"duration_s": 1.0}
     manifest_path.write_text(json.dumps(data))
     report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
-                        manifest=load_manifest(manifest_path))  # fmt: skip
+                        manifest=load_manifest(manifest_path))
     done = [r for r in report.results if r.status == "done"]
     [missing] = report.failed
     assert "missing.jpg" in missing.error and "no such photo" in missing.error

@@ -5,7 +5,7 @@ from kbbatch.presets import PresetError, builtin_names, load_preset, with_overri
 SHIPPED = {
     "slideshow": (1920, 1080, 30), "social": (1080, 1920, 30), "square": (1080, 1080, 30),
     "preview": (640, 360, 25), "4k": (3840, 2160, 30),
-}  # fmt: skip
+}
 
 
 def test_shipped_presets_load_with_their_sizes():

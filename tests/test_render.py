@@ -23,7 +23,7 @@ def card_scene():
 def shifted_view(shift_x: float, focal_scale: float = 1.0) -> View:
     base = working_view(SCENE, (shift_x, 0.0, 0.0))
     return View(base.position, base.focal_px * focal_scale, base.principal_x_px,
-                base.principal_y_px, W, H)  # fmt: skip
+                base.principal_y_px, W, H)
 
 
 def test_fronto_parallel_plane_renders_back_to_input():

@@ -56,7 +56,7 @@ def test_rerun_skips_up_to_date_clips_and_force_redoes_them(tmp_path, quick_pres
     assert [r.status for r in third.results] == ["skipped", "done"]
     other = ClipOptions(planner="2d", depth=FAST.depth, threads=2)  # settings changed
     assert [r.status for r in run_folder(folder, tmp_path / "out", quick_preset, other,
-                                         False).results] == ["done", "done"]  # fmt: skip
+                                         False).results] == ["done", "done"]
     forced = run_folder(folder, tmp_path / "out", quick_preset, other, False, force=True)
     assert [r.status for r in forced.results] == ["done", "done"]
 
@@ -78,11 +78,11 @@ def test_a_20000_px_jpeg_is_decoded_small_and_a_png_bomb_is_refused(tmp_path):
     # A PNG that claims 20000 x 20000 pixels: refused before any pixel is decoded.
     def chunk(kind: bytes, data: bytes) -> bytes:
         return (struct.pack(">I", len(data)) + kind + data
-                + struct.pack(">I", zlib.crc32(kind + data)))  # fmt: skip
+                + struct.pack(">I", zlib.crc32(kind + data)))
 
     header = struct.pack(">IIBBBBB", 20000, 20000, 8, 2, 0, 0, 0)
     png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
-           + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))  # fmt: skip
+           + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))
     (tmp_path / "bomb.png").write_bytes(png)
     with pytest.raises(ImageReadError, match="bomb.png: is 20000x20000 px"):
         read_image(tmp_path / "bomb.png")
@@ -122,7 +122,7 @@ def test_disk_full_during_encoding_leaves_no_partial_clip(tmp_path):
         "main()\n"
     )
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                            timeout=300)  # fmt: skip
+                            timeout=300)
     assert result.returncode == 1, result.stderr
     assert "a.png" in result.stderr and "FAILED" in result.stderr
     assert not visible_clips(out), "a partial clip was left under the final name"

@@ -43,7 +43,7 @@ encoder_preset = "ultrafast"
 def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str) -> subprocess.Popen:
     command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
                "--preset", str(preset), "--settle", "1", "--depth", "ramp", "--planner",
-               "center", *extra]  # fmt: skip
+               "center", *extra]
     log = open(outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
 
@@ -109,7 +109,7 @@ def test_daemon_makes_a_clip_per_good_photo_and_a_report_per_bad_one(tmp_path):
     assert not [p for p in inbox.iterdir() if p.is_file()], "every photo left the inbox"
     assert not list(outbox.glob(".*part*"))
     status = subprocess.run([sys.executable, "-m", "kbbatch", "status", str(outbox)],
-                            capture_output=True, text=True, check=True)  # fmt: skip
+                            capture_output=True, text=True, check=True)
     assert f"done {total - len(BAD)}, failed {len(BAD)}" in status.stdout
 
 

@@ -63,7 +63,7 @@ class DepthBackend(Protocol):
     name: str
 
     def disparity(self, image: np.ndarray, photo_path: Path | None, context: SceneContext
-                  ) -> DepthResult: ...  # fmt: skip
+                  ) -> DepthResult: ...
 
 
 BACKEND_NAMES = ("auto", "file", "onnx", "popup", "ramp")
@@ -88,7 +88,7 @@ def get_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
     if name == "file":
         if depth_file is None:
             raise DepthError(f"{photo_path}: --depth file needs <stem>.depth.png/.npy or "
-                             "<stem>.disparity.png/.npy beside the photo")  # fmt: skip
+                             "<stem>.disparity.png/.npy beside the photo")
         return FileDepth(depth_file)
     if name == "onnx":
         model = options.model or first_cached_model()
@@ -104,7 +104,7 @@ def get_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
 
 
 def estimate_disparity(image: np.ndarray, photo_path: Path | None,
-                       options: DepthOptions | str = DepthOptions()) -> DepthResult:  # fmt: skip
+                       options: DepthOptions | str = DepthOptions()) -> DepthResult:
     """Relative disparity at the image's size: estimated, refined, adjusted."""
     from kbbatch.depth.adjust import adjust
     from kbbatch.depth.refine import refine

@@ -32,9 +32,9 @@ def cache_dir() -> Path:
 
 
 def cache_key(photo_bytes_hash: str, options: DepthOptions, size: tuple[int, int],
-              depth_file_hash: str | None) -> str:  # fmt: skip
+              depth_file_hash: str | None) -> str:
     settings = {"photo": photo_bytes_hash, "options": asdict(options), "size": size,
-                "depth_file": depth_file_hash, "version": CACHE_VERSION}  # fmt: skip
+                "depth_file": depth_file_hash, "version": CACHE_VERSION}
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:32]
 
 
@@ -56,6 +56,6 @@ def store(key: str, result: DepthResult) -> None:
     try:
         with atomic_output(path, ".npz") as temp_path, temp_path.open("wb") as handle:
             np.savez(handle, disparity=result.disparity, backend=result.backend,
-                     source=result.source)  # fmt: skip
+                     source=result.source)
     except OSError:
         pass  # a cache that cannot be written only costs time

@@ -50,7 +50,7 @@ def load_map(path: Path) -> np.ndarray:
 
 
 def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, width: int
-                       ) -> np.ndarray:  # fmt: skip
+                       ) -> np.ndarray:
     """Validate a user map and turn it into disparity at the given size."""
     if not np.isfinite(data).all():
         raise DepthError(f"{path}: contains NaN or infinite values")
@@ -64,7 +64,7 @@ def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, wid
     photo_aspect = width / height
     if abs(map_aspect / photo_aspect - 1.0) > ASPECT_TOLERANCE:
         raise DepthError(f"{path}: is {data.shape[1]}x{data.shape[0]} (aspect {map_aspect:.3f}) "
-                         f"but the photo's aspect is {photo_aspect:.3f}")  # fmt: skip
+                         f"but the photo's aspect is {photo_aspect:.3f}")
     if kind == "depth":
         # Unknown pixels are taken as the farthest known depth.
         depth = np.where(valid, data, values.max())
@@ -81,7 +81,7 @@ class FileDepth:
         self.path = path
 
     def disparity(self, image: np.ndarray, photo_path: Path | None, context: object = None
-                  ) -> DepthResult:  # fmt: skip
+                  ) -> DepthResult:
         if not self.path.is_file():
             raise DepthError(f"{self.path}: depth file not found")
         parts = self.path.name.lower().split(".")
@@ -89,4 +89,4 @@ class FileDepth:
         height, width = image.shape[:2]
         data = load_map(self.path)
         return DepthResult(disparity_from_map(data, kind, self.path, height, width), self.name,
-                           str(self.path))  # fmt: skip
+                           str(self.path))

@@ -34,11 +34,11 @@ class OnnxDepth:
     def __init__(self, model: str) -> None:
         if model not in DEPTH_MODELS:
             raise models.ModelError(f"{model} is not a depth model; choose from "
-                                    f"{', '.join(DEPTH_MODELS)}")  # fmt: skip
+                                    f"{', '.join(DEPTH_MODELS)}")
         self.spec = models.REGISTRY[model]
 
     def disparity(self, image: np.ndarray, photo_path: Path | None, context: SceneContext
-                  ) -> DepthResult:  # fmt: skip
+                  ) -> DepthResult:
         session = models.load(self.spec.name)
         height, width = image.shape[:2]
         size = models.input_size_for(self.spec, width, height)

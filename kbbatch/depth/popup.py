@@ -79,7 +79,7 @@ def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> 
     height, width = image.shape[:2]
     bottoms = [height - 1 - int(np.argmax(mask.any(axis=1)[::-1])) for mask, _ in cards]
     contacts = [(b + 1) / height for b, (_, grounded) in zip(bottoms, cards, strict=True)
-                if grounded]  # fmt: skip
+                if grounded]
     horizon = estimate_horizon(image, contacts)
     ground = ground_plane_disparity(height, width, horizon)
     disparity = ground.copy()
@@ -93,7 +93,7 @@ class PopupDepth:
     name = "popup"
 
     def disparity(self, image: np.ndarray, photo_path: Path | None, context: SceneContext
-                  ) -> DepthResult:  # fmt: skip
+                  ) -> DepthResult:
         cards = salient_cards(context)
         return DepthResult(popup_disparity(image, cards), self.name,
-                           f"ground plane and {len(cards)} card(s)")  # fmt: skip
+                           f"ground plane and {len(cards)} card(s)")

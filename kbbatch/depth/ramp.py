@@ -20,7 +20,7 @@ BACKDROP_DISPARITY = 0.15
 
 
 def ground_plane_disparity(height_px: int, width_px: int, horizon_fraction: float = HORIZON_FRACTION
-                           ) -> np.ndarray:  # fmt: skip
+                           ) -> np.ndarray:
     """Disparity of a flat ground below the horizon (linear in the row) and a far backdrop."""
     rows = (np.arange(height_px, dtype=np.float32) + 0.5) / height_px
     below = np.clip((rows - horizon_fraction) / (1.0 - horizon_fraction), 0.0, 1.0)
@@ -32,6 +32,6 @@ class RampDepth:
     name = "ramp"
 
     def disparity(self, image: np.ndarray, photo_path: Path | None, context: object = None
-                  ) -> DepthResult:  # fmt: skip
+                  ) -> DepthResult:
         height, width = image.shape[:2]
         return DepthResult(ground_plane_disparity(height, width), self.name, "ground-plane prior")
