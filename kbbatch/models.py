@@ -103,6 +103,13 @@ def cached_path(name: str) -> Path | None:
     return path if path.is_file() else None
 
 
+def cache_fingerprint() -> list[tuple[str, int]]:
+    """Which models are in the cache (name and size): depth computed with other models
+    available is different depth, so the depth cache keys on this."""
+    return [(name, path.stat().st_size) for name in sorted(REGISTRY)
+            if (path := cached_path(name)) is not None]
+
+
 def sha256_of(path: Path) -> str:
     digest = hashlib.sha256()
     with path.open("rb") as handle:

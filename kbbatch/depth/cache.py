@@ -33,8 +33,11 @@ def cache_dir() -> Path:
 
 def cache_key(photo_bytes_hash: str, options: DepthOptions, size: tuple[int, int],
               depth_file_hash: str | None) -> str:
+    from kbbatch.models import cache_fingerprint
+
     settings = {"photo": photo_bytes_hash, "options": asdict(options), "size": size,
-                "depth_file": depth_file_hash, "version": CACHE_VERSION}
+                "depth_file": depth_file_hash, "models": cache_fingerprint(),
+                "version": CACHE_VERSION}
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:32]
 
 
