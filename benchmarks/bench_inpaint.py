@@ -22,13 +22,12 @@ import cv2
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.batch import ClipOptions, frame_times, prepare_scene, render_frame
+from kbbatch.batch import ClipOptions, frame_at, frame_times, prepare_scene
 from kbbatch.camera import SceneGeometry, View, depth_from_disparity, output_view, working_view
 from kbbatch.images import read_image
 from kbbatch.inpaint import build_extended_cloud, extend_at_view, snap_edge_depth
 from kbbatch.presets import load_preset
-from kbbatch.render import back_project, render, to_uint8
-from kbbatch.render import render_frame as render_view_frame
+from kbbatch.render import back_project, render, render_frame, to_uint8
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 CLIP_PHOTOS = ("03_portrait_two_people_obama_biden.jpg", "10_animal_giraffe.jpg",
@@ -84,12 +83,12 @@ def clip_rows() -> None:
             view = output_view(plan, scene, t, preset.width_px, preset.height_px)
             before.append(int((~render(plain, view, disparity_scale).covered).sum()))
             after.append(int((~render(prepared.cloud, view, disparity_scale).covered).sum()))
-            frame = render_frame(prepared, preset, t).astype(np.float32)
+            frame = frame_at(prepared, preset, t).astype(np.float32)
             if previous is not None:
                 changes.append(float(np.abs(frame - previous).mean()))
             previous = frame
-        same = np.array_equal(render_frame(prepared, preset, 0.37),
-                              render_frame(prepared, preset, 0.37))
+        same = np.array_equal(frame_at(prepared, preset, 0.37),
+                              frame_at(prepared, preset, 0.37))
         flicker = max(changes) / max(np.median(changes), 1e-9)
         print(f"{name[:39]:<40}{np.mean(before):>13.0f}{max(before):>8}{np.mean(after):>11.1f}"
               f"{max(after):>8}{fill_seconds:>14.2f}{flicker:>9.2f}{str(same):>6}")
@@ -140,7 +139,7 @@ def view_rows() -> None:
         outputs["telea"] = cv2.inpaint(outputs["no fill"], (~raw.covered).astype(np.uint8) * 255,
                                        5, cv2.INPAINT_TELEA)
         added, _ = extend_at_view(cloud, right_view, focal, np.ones_like(seen), 1.0)
-        outputs["ours"] = render_view_frame(cloud.extended(added), right_view, focal)
+        outputs["ours"] = render_frame(cloud.extended(added), right_view, focal)
         for method, image in outputs.items():
             similarity = ssim_map(image, right)
             row = [

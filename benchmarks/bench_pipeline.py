@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kbbatch.batch import ClipOptions, make_clip, prepare_scene, render_frame
+from kbbatch.batch import ClipOptions, frame_at, make_clip, prepare_scene
 from kbbatch.encode import ffmpeg_exe
 from kbbatch.images import read_image
 from kbbatch.presets import Preset, load_preset
@@ -68,17 +68,17 @@ def main() -> int:
     photo = read_image(args.photo)
     timings: dict[str, float] = {}
     prepared = prepare_scene(photo, args.photo, preset, options, timings)
-    render_frame(prepared, preset, 0.5)  # compile the kernels outside the timings
+    frame_at(prepared, preset, 0.5)  # compile the kernels outside the timings
     times = np.linspace(0, 1, args.frames).tolist()
 
     started = time.perf_counter()
     for t in times:
-        render_frame(prepared, preset, t)
+        frame_at(prepared, preset, t)
     fps_one = args.frames / (time.perf_counter() - started)
     from kbbatch.batch import ordered_map
 
     started = time.perf_counter()
-    for _ in ordered_map(lambda t: render_frame(prepared, preset, t), times, threads):
+    for _ in ordered_map(lambda t: frame_at(prepared, preset, t), times, threads):
         pass
     fps_all = args.frames / (time.perf_counter() - started)
 

@@ -32,8 +32,7 @@ from kbbatch.images import ImageReadError, atomic_output, list_images, read_imag
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
-from kbbatch.render import PointCloud
-from kbbatch.render import render_frame as render_view_frame
+from kbbatch.render import PointCloud, render_frame
 from planners import PlanRequest, get_planner
 
 MAX_POINT_SPACING_PX = 1.8
@@ -124,8 +123,9 @@ def prepare_scene(
 
     clock = time.perf_counter()
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
-    photo_cloud = resize_to(photo, round(width * scale), round(height * round(width * scale)
-                                                               / width))
+    # The height follows the rounded width, so the cloud keeps the scale the views assume.
+    cloud_width = round(width * scale)
+    photo_cloud = resize_to(photo, cloud_width, round(height * cloud_width / width))
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
@@ -150,11 +150,11 @@ def cached_disparity(working: np.ndarray, photo_path: Path | None, options: Clip
     return result
 
 
-def render_frame(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
+def frame_at(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
     """One output frame at time t in [0, 1], every pixel filled."""
     view = output_view(prepared.plan, prepared.scene, t, preset.width_px, preset.height_px)
     disparity_scale = prepared.scene.focal_px * paper.DISPARITY_MAX_PX
-    return render_view_frame(prepared.cloud, view, disparity_scale)
+    return render_frame(prepared.cloud, view, disparity_scale)
 
 
 def frame_times(preset: Preset) -> list[float]:
@@ -177,7 +177,7 @@ def render_clip_frames(
             store = np.empty(shape, np.uint8)
         else:
             store = np.lib.format.open_memmap(Path(scratch) / "frames.npy", "w+", np.uint8, shape)
-        rendered = ordered_map(lambda t: render_frame(prepared, preset, t), times, threads)
+        rendered = ordered_map(lambda t: frame_at(prepared, preset, t), times, threads)
         for index, frame in enumerate(rendered):
             store[index] = frame
             if progress:

@@ -12,6 +12,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 MODELS_ENV = "KBBATCH_MODELS"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -181,11 +184,9 @@ def load(name: str):
     return session(path)
 
 
-def prepare_input(spec: ModelSpec, image_rgb, size: tuple[int, int] | None = None):
+def prepare_input(spec: ModelSpec, image_rgb: np.ndarray, size: tuple[int, int] | None = None
+                  ) -> np.ndarray:
     """Resize and normalise an RGB uint8 image as the model expects; returns a batch of one."""
-    import cv2
-    import numpy as np
-
     width, height = size or (spec.input_size, spec.input_size)
     resized = cv2.resize(image_rgb, (width, height), interpolation=cv2.INTER_AREA
                          if width < image_rgb.shape[1] else cv2.INTER_LINEAR)

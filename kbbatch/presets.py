@@ -7,7 +7,7 @@ validation, `kbbatch presets` and the README table are all derived from it.
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -142,6 +142,3 @@ def with_overrides(preset: Preset, **overrides: Any) -> Preset:
     merged = {f.name: getattr(preset, f.name) for f in fields(Preset)} | changes
     return preset_from_mapping(merged, f"preset {preset.name!r} with overrides")
 
-
-__all__ = ["Preset", "PresetError", "builtin_names", "load_preset", "replace", "settings",
-           "with_overrides"]

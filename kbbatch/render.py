@@ -192,15 +192,41 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
 
 
 @numba.njit(cache=True, nogil=True)
+def _project_point(x, y, z, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height):
+    """A point's bilinear footprint in a view: top-left pixel, fractions, inverse depth."""
+    one = np.float32(1.0)
+    depth = z - cam_z
+    if depth <= np.float32(NEAR_PLANE):
+        return False, 0, 0, np.float32(0.0), np.float32(0.0), np.float32(0.0)
+    inv_z = one / depth
+    px = focal * (x - cam_x) * inv_z + ppx
+    py = focal * (y - cam_y) * inv_z + ppy
+    if not (px > -1 and py > -1 and px < width and py < height):
+        return False, 0, 0, np.float32(0.0), np.float32(0.0), np.float32(0.0)
+    x_floor = np.floor(px)
+    y_floor = np.floor(py)
+    return True, int(x_floor), int(y_floor), px - x_floor, py - y_floor, inv_z
+
+
+@numba.njit(cache=True, nogil=True)
+def _corner(k, x0, y0, fx, fy, width, height):
+    """Corner k (0..3) of a bilinear footprint: whether it is in the frame, where, its weight."""
+    one = np.float32(1.0)
+    dx = k & 1
+    dy = k >> 1
+    inside = 0 <= y0 + dy < height and 0 <= x0 + dx < width
+    return inside, y0 + dy, x0 + dx, (fx if dx else one - fx) * (fy if dy else one - fy)
+
+
+@numba.njit(cache=True, nogil=True)
 def _splat_kernel(
     xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
     accumulator, front, clear,
 ):
-    # Written out by hand on purpose: helper functions and float64 promotion made this loop
-    # two to three times slower. All arithmetic stays in float32.
+    # The per-pixel work is written out by hand on purpose: helpers taking the buffers, and
+    # float64 promotion, made this loop two to three times slower. All arithmetic is float32.
     height, width = front.shape
     one = np.float32(1.0)
-    near = np.float32(NEAR_PLANE)
     min_weight = np.float32(MIN_SPLAT_WEIGHT)
     if clear:  # render_frame's finishing pass leaves its buffer cleared for the next frame
         accumulator[:] = 0.0
@@ -208,20 +234,11 @@ def _splat_kernel(
     # Pass 1: the nearest surface (largest inverse depth) per pixel, over each point's four
     # bilinear pixels.
     for i in range(zs.shape[0]):
-        depth = zs[i] - cam_z
-        if depth <= near:
+        visible, x0, y0, fx, fy, inv_z = _project_point(
+            xs[i], ys[i], zs[i], cam_x, cam_y, cam_z, focal, ppx, ppy, width, height
+        )
+        if not visible:
             continue
-        inv_z = one / depth
-        px = focal * (xs[i] - cam_x) * inv_z + ppx
-        py = focal * (ys[i] - cam_y) * inv_z + ppy
-        if not (px > -1 and py > -1 and px < width and py < height):
-            continue
-        x_floor = np.floor(px)
-        y_floor = np.floor(py)
-        x0 = int(x_floor)
-        y0 = int(y_floor)
-        fx = px - x_floor
-        fy = py - y_floor
         if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
             # Interior: all four pixels exist (the common case, unrolled).
             if (one - fx) * (one - fy) > min_weight and inv_z > front[y0, x0]:
@@ -233,34 +250,19 @@ def _splat_kernel(
             if fx * fy > min_weight and inv_z > front[y0 + 1, x0 + 1]:
                 front[y0 + 1, x0 + 1] = inv_z
             continue
-        for k in range(4):
-            dx = k & 1
-            dy = k >> 1
-            yy = y0 + dy
-            xx = x0 + dx
-            if yy < 0 or xx < 0 or yy >= height or xx >= width:
-                continue
-            w = (fx if dx else one - fx) * (fy if dy else one - fy)
-            if w > min_weight and inv_z > front[yy, xx]:
+        for k in range(4):  # at the frame's edge: only the corners inside
+            inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
+            if inside and w > min_weight and inv_z > front[yy, xx]:
                 front[yy, xx] = inv_z
     # Pass 2: close cracks where background shines through a magnified foreground.
     _filter_cracks(front, crack_inv_z)
     # Pass 3: splat every point that lies on the front surface, weighted bilinearly.
     for i in range(zs.shape[0]):
-        depth = zs[i] - cam_z
-        if depth <= near:
+        visible, x0, y0, fx, fy, inv_z = _project_point(
+            xs[i], ys[i], zs[i], cam_x, cam_y, cam_z, focal, ppx, ppy, width, height
+        )
+        if not visible:
             continue
-        inv_z = one / depth
-        px = focal * (xs[i] - cam_x) * inv_z + ppx
-        py = focal * (ys[i] - cam_y) * inv_z + ppy
-        if not (px > -1 and py > -1 and px < width and py < height):
-            continue
-        x_floor = np.floor(px)
-        y_floor = np.floor(py)
-        x0 = int(x_floor)
-        y0 = int(y_floor)
-        fx = px - x_floor
-        fy = py - y_floor
         r = np.float32(colours[i, 0])
         g = np.float32(colours[i, 1])
         b = np.float32(colours[i, 2])
@@ -296,15 +298,9 @@ def _splat_kernel(
                 cell[2] += w11 * b
                 cell[3] += w11
             continue
-        for k in range(4):
-            dx = k & 1
-            dy = k >> 1
-            yy = y0 + dy
-            xx = x0 + dx
-            if yy < 0 or xx < 0 or yy >= height or xx >= width:
-                continue
-            w = (fx if dx else one - fx) * (fy if dy else one - fy)
-            if w > min_weight and front[yy, xx] <= lowest:
+        for k in range(4):  # at the frame's edge: only the corners inside
+            inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
+            if inside and w > min_weight and front[yy, xx] <= lowest:
                 cell = accumulator[yy, xx]
                 cell[0] += w * r
                 cell[1] += w * g

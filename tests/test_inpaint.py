@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.batch import PreparedScene, render_frame
+from kbbatch.batch import PreparedScene, frame_at
 from kbbatch.camera import (
     Crop,
     Plan,
@@ -98,10 +98,10 @@ def test_strong_move_leaves_no_empty_pixel_in_any_frame():
         view = output_view(plan, scene, t, preset.width_px, preset.height_px)
         raw = render(cloud, view, disparity_scale)
         assert raw.covered.mean() > 0.99, "the extended cloud must cover nearly every pixel"
-        frame = render_frame(prepared, preset, float(t))
+        frame = frame_at(prepared, preset, float(t))
         assert frame.shape == (200, 320, 3)
         assert (frame.sum(axis=-1) > 0).all(), "an empty (black) pixel reached the output"
-        np.testing.assert_array_equal(frame, render_frame(prepared, preset, float(t)))
+        np.testing.assert_array_equal(frame, frame_at(prepared, preset, float(t)))
 
 
 def test_depth_fill_grows_from_the_background_side_only():

@@ -104,13 +104,11 @@ def get_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
 
 
 def estimate_disparity(image: np.ndarray, photo_path: Path | None,
-                       options: DepthOptions | str = DepthOptions()) -> DepthResult:
+                       options: DepthOptions = DepthOptions()) -> DepthResult:
     """Relative disparity at the image's size: estimated, refined, adjusted."""
     from kbbatch.depth.adjust import adjust
     from kbbatch.depth.refine import refine
 
-    if isinstance(options, str):
-        options = DepthOptions(backend=options)
     context = SceneContext(image)
     result = get_backend(options, photo_path).disparity(image, photo_path, context)
     height, width = image.shape[:2]
