@@ -191,21 +191,43 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
     return frame
 
 
+PROJECT_CHUNK = 1024
+"""Points projected together in one vectorised loop before they are splatted one by one; small
+enough that the projections stay in the L1 cache between the two loops."""
+
+_OUTSIDE = -2  # column marking a point that no pixel of the view receives
+
+
 @numba.njit(cache=True, nogil=True)
-def _project_point(x, y, z, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height):
-    """A point's bilinear footprint in a view: top-left pixel, fractions, inverse depth."""
+def _project_chunk(
+    xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
+    cols, rows, frac_x, frac_y, inv_zs,
+):
+    """Bilinear footprints of points start.. (top-left pixel, fractions, inverse depth).
+
+    Branch-free so that it compiles to SIMD: points behind the camera or off the view get
+    column _OUTSIDE instead of an early exit.
+    """
     one = np.float32(1.0)
-    depth = z - cam_z
-    if depth <= np.float32(NEAR_PLANE):
-        return False, 0, 0, np.float32(0.0), np.float32(0.0), np.float32(0.0)
-    inv_z = one / depth
-    px = focal * (x - cam_x) * inv_z + ppx
-    py = focal * (y - cam_y) * inv_z + ppy
-    if not (px > -1 and py > -1 and px < width and py < height):
-        return False, 0, 0, np.float32(0.0), np.float32(0.0), np.float32(0.0)
-    x_floor = np.floor(px)
-    y_floor = np.floor(py)
-    return True, int(x_floor), int(y_floor), px - x_floor, py - y_floor, inv_z
+    near = np.float32(NEAR_PLANE)
+    right = np.float32(width)
+    bottom = np.float32(height)
+    for j in range(min(cols.shape[0], zs.shape[0] - start)):
+        i = start + j
+        depth = zs[i] - cam_z
+        inv_z = one / max(depth, near)
+        px = focal * (xs[i] - cam_x) * inv_z + ppx
+        py = focal * (ys[i] - cam_y) * inv_z + ppy
+        visible = depth > near and px > -one and py > -one and px < right and py < bottom
+        px = min(max(px, -one), right)
+        py = min(max(py, -one), bottom)
+        x_floor = np.floor(px)
+        y_floor = np.floor(py)
+        cols[j] = np.int32(x_floor) if visible else np.int32(_OUTSIDE)
+        rows[j] = np.int32(y_floor)
+        frac_x[j] = px - x_floor
+        frac_y[j] = py - y_floor
+        inv_zs[j] = inv_z
 
 
 @numba.njit(cache=True, nogil=True)
@@ -231,92 +253,113 @@ def _splat_kernel(
     if clear:  # render_frame's finishing pass leaves its buffer cleared for the next frame
         accumulator[:] = 0.0
     front[:] = 0.0
+    cols = np.empty(PROJECT_CHUNK, np.int32)
+    rows = np.empty(PROJECT_CHUNK, np.int32)
+    frac_x = np.empty(PROJECT_CHUNK, np.float32)
+    frac_y = np.empty(PROJECT_CHUNK, np.float32)
+    inv_zs = np.empty(PROJECT_CHUNK, np.float32)
+    count = zs.shape[0]
     # Pass 1: the nearest surface (largest inverse depth) per pixel, over each point's four
     # bilinear pixels.
-    for i in range(zs.shape[0]):
-        visible, x0, y0, fx, fy, inv_z = _project_point(
-            xs[i], ys[i], zs[i], cam_x, cam_y, cam_z, focal, ppx, ppy, width, height
+    for start in range(0, count, PROJECT_CHUNK):
+        _project_chunk(
+            xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
+            cols, rows, frac_x, frac_y, inv_zs,
         )
-        if not visible:
-            continue
-        if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
-            # Interior: all four pixels exist (the common case, unrolled).
-            if (one - fx) * (one - fy) > min_weight and inv_z > front[y0, x0]:
-                front[y0, x0] = inv_z
-            if fx * (one - fy) > min_weight and inv_z > front[y0, x0 + 1]:
-                front[y0, x0 + 1] = inv_z
-            if (one - fx) * fy > min_weight and inv_z > front[y0 + 1, x0]:
-                front[y0 + 1, x0] = inv_z
-            if fx * fy > min_weight and inv_z > front[y0 + 1, x0 + 1]:
-                front[y0 + 1, x0 + 1] = inv_z
-            continue
-        for k in range(4):  # at the frame's edge: only the corners inside
-            inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
-            if inside and w > min_weight and inv_z > front[yy, xx]:
-                front[yy, xx] = inv_z
+        for j in range(min(PROJECT_CHUNK, count - start)):
+            x0 = cols[j]
+            if x0 == _OUTSIDE:
+                continue
+            y0 = rows[j]
+            fx = frac_x[j]
+            fy = frac_y[j]
+            inv_z = inv_zs[j]
+            if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
+                # Interior: all four pixels exist (the common case, unrolled).
+                if (one - fx) * (one - fy) > min_weight and inv_z > front[y0, x0]:
+                    front[y0, x0] = inv_z
+                if fx * (one - fy) > min_weight and inv_z > front[y0, x0 + 1]:
+                    front[y0, x0 + 1] = inv_z
+                if (one - fx) * fy > min_weight and inv_z > front[y0 + 1, x0]:
+                    front[y0 + 1, x0] = inv_z
+                if fx * fy > min_weight and inv_z > front[y0 + 1, x0 + 1]:
+                    front[y0 + 1, x0 + 1] = inv_z
+                continue
+            for k in range(4):  # at the frame's edge: only the corners inside
+                inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
+                if inside and w > min_weight and inv_z > front[yy, xx]:
+                    front[yy, xx] = inv_z
     # Pass 2: close cracks where background shines through a magnified foreground.
     _filter_cracks(front, crack_inv_z)
     # Pass 3: splat every point that lies on the front surface, weighted bilinearly.
-    for i in range(zs.shape[0]):
-        visible, x0, y0, fx, fy, inv_z = _project_point(
-            xs[i], ys[i], zs[i], cam_x, cam_y, cam_z, focal, ppx, ppy, width, height
+    for start in range(0, count, PROJECT_CHUNK):
+        _project_chunk(
+            xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
+            cols, rows, frac_x, frac_y, inv_zs,
         )
-        if not visible:
-            continue
-        r = np.float32(colours[i, 0])
-        g = np.float32(colours[i, 1])
-        b = np.float32(colours[i, 2])
-        lowest = inv_z + soft_inv_z  # a pixel's front may be at most this near
-        if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
-            # Interior: all four pixels exist (the common case, unrolled).
-            w00 = (one - fx) * (one - fy)
-            w01 = fx * (one - fy)
-            w10 = (one - fx) * fy
-            w11 = fx * fy
-            if w00 > min_weight and front[y0, x0] <= lowest:
-                cell = accumulator[y0, x0]
-                cell[0] += w00 * r
-                cell[1] += w00 * g
-                cell[2] += w00 * b
-                cell[3] += w00
-            if w01 > min_weight and front[y0, x0 + 1] <= lowest:
-                cell = accumulator[y0, x0 + 1]
-                cell[0] += w01 * r
-                cell[1] += w01 * g
-                cell[2] += w01 * b
-                cell[3] += w01
-            if w10 > min_weight and front[y0 + 1, x0] <= lowest:
-                cell = accumulator[y0 + 1, x0]
-                cell[0] += w10 * r
-                cell[1] += w10 * g
-                cell[2] += w10 * b
-                cell[3] += w10
-            if w11 > min_weight and front[y0 + 1, x0 + 1] <= lowest:
-                cell = accumulator[y0 + 1, x0 + 1]
-                cell[0] += w11 * r
-                cell[1] += w11 * g
-                cell[2] += w11 * b
-                cell[3] += w11
-            continue
-        for k in range(4):  # at the frame's edge: only the corners inside
-            inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
-            if inside and w > min_weight and front[yy, xx] <= lowest:
-                cell = accumulator[yy, xx]
-                cell[0] += w * r
-                cell[1] += w * g
-                cell[2] += w * b
-                cell[_WEIGHT] += w
+        for j in range(min(PROJECT_CHUNK, count - start)):
+            x0 = cols[j]
+            if x0 == _OUTSIDE:
+                continue
+            y0 = rows[j]
+            fx = frac_x[j]
+            fy = frac_y[j]
+            i = start + j
+            r = np.float32(colours[i, 0])
+            g = np.float32(colours[i, 1])
+            b = np.float32(colours[i, 2])
+            lowest = inv_zs[j] + soft_inv_z  # a pixel's front may be at most this near
+            if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
+                # Interior: all four pixels exist (the common case, unrolled).
+                w00 = (one - fx) * (one - fy)
+                w01 = fx * (one - fy)
+                w10 = (one - fx) * fy
+                w11 = fx * fy
+                if w00 > min_weight and front[y0, x0] <= lowest:
+                    cell = accumulator[y0, x0]
+                    cell[0] += w00 * r
+                    cell[1] += w00 * g
+                    cell[2] += w00 * b
+                    cell[3] += w00
+                if w01 > min_weight and front[y0, x0 + 1] <= lowest:
+                    cell = accumulator[y0, x0 + 1]
+                    cell[0] += w01 * r
+                    cell[1] += w01 * g
+                    cell[2] += w01 * b
+                    cell[3] += w01
+                if w10 > min_weight and front[y0 + 1, x0] <= lowest:
+                    cell = accumulator[y0 + 1, x0]
+                    cell[0] += w10 * r
+                    cell[1] += w10 * g
+                    cell[2] += w10 * b
+                    cell[3] += w10
+                if w11 > min_weight and front[y0 + 1, x0 + 1] <= lowest:
+                    cell = accumulator[y0 + 1, x0 + 1]
+                    cell[0] += w11 * r
+                    cell[1] += w11 * g
+                    cell[2] += w11 * b
+                    cell[3] += w11
+                continue
+            for k in range(4):  # at the frame's edge: only the corners inside
+                inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
+                if inside and w > min_weight and front[yy, xx] <= lowest:
+                    cell = accumulator[yy, xx]
+                    cell[0] += w * r
+                    cell[1] += w * g
+                    cell[2] += w * b
+                    cell[_WEIGHT] += w
 
 
 @numba.njit(cache=True, nogil=True)
 def _filter_cracks(front, crack_inv_z):
     """Give a pixel the average inverse depth of two opposite neighbours that are clearly nearer."""
     height, width = front.shape
-    source = front.copy()
+    # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
+    above = front[0].copy()
+    row = np.empty_like(above)
     for yy in range(1, height - 1):
-        above = source[yy - 1]
-        row = source[yy]
-        below = source[yy + 1]
+        row[:] = front[yy]
+        below = front[yy + 1]
         for xx in range(1, width - 1):
             threshold = row[xx] + crack_inv_z
             # Opposite neighbour pairs: horizontal, vertical and both diagonals.
@@ -328,6 +371,7 @@ def _filter_cracks(front, crack_inv_z):
                 front[yy, xx] = 0.5 * (above[xx - 1] + below[xx + 1])
             elif above[xx + 1] > threshold and below[xx - 1] > threshold:
                 front[yy, xx] = 0.5 * (above[xx + 1] + below[xx - 1])
+        above, row = row, above
 
 
 @numba.njit(cache=True, nogil=True)

@@ -1,7 +1,18 @@
 import numpy as np
 
 from kbbatch.camera import SceneGeometry, View, working_view
-from kbbatch.render import back_project, depth_edges, render, render_frame, to_uint8
+from kbbatch.render import (
+    CRACK_DISPARITY_PX,
+    MIN_SPLAT_WEIGHT,
+    NEAR_PLANE,
+    SOFT_Z_DISPARITY_PX,
+    PointCloud,
+    back_project,
+    depth_edges,
+    render,
+    render_frame,
+    to_uint8,
+)
 
 from .conftest import textured_image
 
@@ -99,3 +110,71 @@ def test_rendering_is_deterministic():
     second = render(cloud, shifted_view(7.3, 1.1), DISPARITY_SCALE)
     np.testing.assert_array_equal(first.colour, second.colour)
     np.testing.assert_array_equal(first.weight, second.weight)
+
+
+def reference_rendering(cloud, view, disparity_scale):
+    """The three passes written plainly in numpy, to check the compiled kernel against."""
+    height, width = view.height_px, view.width_px
+    depth = cloud.z.astype(np.float64) - view.position[2]
+    ahead = depth > NEAR_PLANE
+    inv_z = np.where(ahead, 1.0 / np.where(ahead, depth, 1.0), 0.0)
+    px = view.focal_px * (cloud.x - view.position[0]) * inv_z + view.principal_x_px - 0.5
+    py = view.focal_px * (cloud.y - view.position[1]) * inv_z + view.principal_y_px - 0.5
+    seen = ahead & (px > -1) & (py > -1) & (px < width) & (py < height)
+    px, py, inv_z, colour = px[seen], py[seen], inv_z[seen], cloud.colour[seen].astype(np.float64)
+    x0, y0 = np.floor(px).astype(int), np.floor(py).astype(int)
+    fx, fy = px - x0, py - y0
+    corners = []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            weight = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
+            xx, yy = x0 + dx, y0 + dy
+            ok = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height) & (weight > MIN_SPLAT_WEIGHT)
+            corners.append((yy[ok] * width + xx[ok], weight[ok], ok))
+    front = np.zeros(height * width)
+    for pixel, _, ok in corners:
+        np.maximum.at(front, pixel, inv_z[ok])
+    front = front.reshape(height, width)
+    filtered = front.copy()
+    crack = CRACK_DISPARITY_PX / disparity_scale
+    for yy in range(1, height - 1):
+        for xx in range(1, width - 1):
+            for (ay, ax), (by, bx) in (((0, -1), (0, 1)), ((-1, 0), (1, 0)),
+                                       ((-1, -1), (1, 1)), ((-1, 1), (1, -1))):
+                a, b = front[yy + ay, xx + ax], front[yy + by, xx + bx]
+                if min(a, b) > front[yy, xx] + crack:
+                    filtered[yy, xx] = (a + b) / 2
+                    break
+    accumulator = np.zeros((height * width, 4))
+    soft = SOFT_Z_DISPARITY_PX / disparity_scale
+    for pixel, weight, ok in corners:
+        on_front = filtered.reshape(-1)[pixel] <= inv_z[ok] + soft
+        values = np.concatenate([colour[ok], np.ones((ok.sum(), 1))], axis=1) * weight[:, None]
+        np.add.at(accumulator, pixel[on_front], values[on_front])
+    return accumulator.reshape(height, width, 4)
+
+
+def test_kernel_matches_a_plain_reference_with_points_behind_and_beside_the_camera():
+    rng = np.random.default_rng(11)
+    count = 5000  # several projection chunks and a partial last one
+    depth = rng.uniform(-20.0, FAR, count).astype(np.float32)  # some behind the camera
+    view = shifted_view(3.0, 1.1)
+    cols = rng.uniform(-40, W + 40, count)  # some project beside the frame
+    rows = rng.uniform(-40, H + 40, count)
+    # Points behind the camera sit where a clamped depth would project them into the frame.
+    scale = np.maximum(depth - view.position[2], NEAR_PLANE) / view.focal_px
+    cloud = PointCloud(
+        ((cols - view.principal_x_px) * scale + view.position[0]).astype(np.float32),
+        ((rows - view.principal_y_px) * scale + view.position[1]).astype(np.float32),
+        depth,
+        rng.integers(0, 256, (count, 3), dtype=np.uint8),
+    )
+    rendering = render(cloud, view, DISPARITY_SCALE)
+    expected = reference_rendering(cloud, view, DISPARITY_SCALE)
+    np.testing.assert_allclose(rendering.weight, expected[..., 3], atol=1e-4)
+    covered = expected[..., 3] > 1e-3
+    assert covered.mean() > 0.1
+    np.testing.assert_allclose(
+        rendering.colour[covered], expected[..., :3][covered] / expected[..., 3:][covered],
+        atol=0.05,
+    )
