@@ -6,8 +6,10 @@ image -> depth -> plan -> extended point cloud -> frames -> encoder.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import tempfile
 import time
 import traceback
@@ -42,6 +44,9 @@ then still meet, so the cloud is upsampled when the photo itself is too small.""
 FRAME_STORE_RAM_BYTES = 1 << 30
 """Rendered frames are kept in memory up to this size, else in a temporary file, so that the
 return half of the palindrome is read back rather than rendered twice."""
+
+SCRATCH_PREFIX = "kbbatch-frames-"
+"""Temporary frame stores are named with this and their process id."""
 
 CLIP_SUFFIX = ".mp4"
 
@@ -172,10 +177,13 @@ def render_clip_frames(
     times = frame_times(preset)
     frame_bytes = preset.width_px * preset.height_px * 3
     shape = (len(times), preset.height_px, preset.width_px, 3)
-    with tempfile.TemporaryDirectory(prefix="kbbatch-frames-") as scratch:
+    with contextlib.ExitStack() as cleanup:
         if frame_bytes * len(times) <= FRAME_STORE_RAM_BYTES:
             store = np.empty(shape, np.uint8)
-        else:
+        else:  # a scratch folder only when the frames do not fit in memory
+            scratch = cleanup.enter_context(
+                tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-")
+            )
             store = np.lib.format.open_memmap(Path(scratch) / "frames.npy", "w+", np.uint8, shape)
         rendered = ordered_map(lambda t: frame_at(prepared, preset, t), times, threads)
         for index, frame in enumerate(rendered):
@@ -186,6 +194,27 @@ def render_clip_frames(
         for index in palindrome_order(len(times))[len(times):]:
             yield store[index]
         del store
+
+
+def remove_stale_scratch() -> list[Path]:
+    """Remove frame stores whose process is gone (kill -9 skips cleanup; 4K ones take GBs)."""
+    removed = []
+    for folder in Path(tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}*-*"):
+        owner = folder.name.removeprefix(SCRATCH_PREFIX).split("-")[0]
+        if owner.isdigit() and not process_alive(int(owner)):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
+def process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
 
 
 def ordered_map(function: Callable, items: list, threads: int) -> Iterator:
@@ -361,6 +390,7 @@ def run_folder(
     from kbbatch.journal import Journal, source_fingerprint
 
     check_writable(output_folder)
+    remove_stale_scratch()
     journal = Journal(output_folder)
     sources = list_images(folder)
     names = output_names(sources)

@@ -23,7 +23,14 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-from kbbatch.batch import ClipOptions, ClipResult, check_writable, clip_settings, make_clip
+from kbbatch.batch import (
+    ClipOptions,
+    ClipResult,
+    check_writable,
+    clip_settings,
+    make_clip,
+    remove_stale_scratch,
+)
 from kbbatch.images import is_image_file
 from kbbatch.journal import Journal, source_fingerprint
 from kbbatch.manifest import Manifest, ManifestEntry
@@ -161,6 +168,8 @@ class Daemon:
         for partial in s.outbox.glob(".*.part*"):
             log.info("removing partial file %s from an interrupted run", partial.name)
             partial.unlink(missing_ok=True)
+        for scratch in remove_stale_scratch():
+            log.info("removed %s, left by a killed worker", scratch)
         for job in self.journal.jobs("running"):
             source = s.inbox / job.source
             output = s.outbox / job.output if job.output else None

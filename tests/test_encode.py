@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -44,3 +46,60 @@ def test_wrong_frame_size_is_refused(tmp_path):
     preset = with_overrides(load_preset("preview"), duration_s=0.4, fps=10.0)
     with pytest.raises(Exception, match="expected"):
         encode_frames(tmp_path / "x.mp4", [np.zeros((10, 10, 3), np.uint8)], preset)
+
+
+def test_frames_beyond_the_memory_budget_go_through_a_scratch_file_that_is_removed(
+    tmp_path, monkeypatch, quick_preset
+):
+    import tempfile
+
+    from kbbatch import batch
+
+    from .conftest import textured_image
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    options = batch.ClipOptions(threads=2, cache_depth=False, depth=batch.DepthOptions("ramp"))
+    prepared = batch.prepare_scene(textured_image(240, 320), None, quick_preset, options, {})
+
+    def frames(budget_bytes: int) -> tuple[list[np.ndarray], list[str]]:
+        monkeypatch.setattr(batch, "FRAME_STORE_RAM_BYTES", budget_bytes)
+        seen, scratch = [], []
+        for frame in batch.render_clip_frames(prepared, quick_preset, threads=2):
+            seen.append(frame.copy())
+            scratch += [p.name for p in tmp_path.iterdir()]
+        return seen, scratch
+
+    in_memory, scratch_in_memory = frames(1 << 30)
+    on_disk, scratch_on_disk = frames(1)
+    assert not scratch_in_memory, "frames that fit in memory need no scratch folder"
+    assert any(name.startswith("kbbatch-frames-") for name in scratch_on_disk)
+    assert list(tmp_path.iterdir()) == [], "the scratch folder must be removed"
+    assert len(on_disk) == quick_preset.frames_total
+    for first, second in zip(in_memory, on_disk, strict=True):
+        np.testing.assert_array_equal(first, second)
+    for k in range(1, len(on_disk)):  # forward, then back without the two ends
+        np.testing.assert_array_equal(on_disk[k], on_disk[len(on_disk) - k])
+
+
+def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, monkeypatch):
+    import subprocess
+    import sys
+    import tempfile
+
+    from kbbatch.batch import SCRATCH_PREFIX, ClipOptions, run_folder
+    from kbbatch.presets import load_preset
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    finished = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                              capture_output=True, text=True, check=True)
+    stale = tmp_path / "tmp" / f"{SCRATCH_PREFIX}{finished.stdout.strip()}-abc"
+    live = tmp_path / "tmp" / f"{SCRATCH_PREFIX}{os.getpid()}-def"
+    for folder in (stale, live):
+        folder.mkdir()
+        (folder / "frames.npy").write_bytes(b"\0" * 1024)
+    (tmp_path / "photos").mkdir()
+    run_folder(tmp_path / "photos", tmp_path / "out", load_preset("preview"),
+               ClipOptions(threads=1), show_progress=False)
+    assert not stale.exists(), "a dead process's frame store must be removed"
+    assert live.exists(), "a running process's frame store must be kept"
