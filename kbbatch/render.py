@@ -246,7 +246,8 @@ def _splat_kernel(
     accumulator, front, clear,
 ):
     # The per-pixel work is written out by hand on purpose: helpers taking the buffers, and
-    # float64 promotion, made this loop two to three times slower. All arithmetic is float32.
+    # float64 promotion, made this loop two to three times slower; one loop shared by both
+    # passes behind a flag measured 13% slower than the two below. All arithmetic is float32.
     height, width = front.shape
     one = np.float32(1.0)
     min_weight = np.float32(MIN_SPLAT_WEIGHT)
