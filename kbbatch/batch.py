@@ -10,11 +10,12 @@ import contextlib
 import json
 import os
 import shutil
+import sys
 import tempfile
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -44,6 +45,9 @@ then still meet, so the cloud is upsampled when the photo itself is too small.""
 FRAME_STORE_RAM_BYTES = 1 << 30
 """Rendered frames are kept in memory up to this size, else in a temporary file, so that the
 return half of the palindrome is read back rather than rendered twice."""
+
+PROGRESS_LOG_INTERVAL_S = 30.0
+"""How often progress is written when stderr is a log or a pipe rather than a terminal."""
 
 SCRATCH_PREFIX = "kbbatch-frames-"
 """Temporary frame stores are named with this and their process id."""
@@ -196,6 +200,13 @@ def render_clip_frames(
         del store
 
 
+def progress_bar(iterable: Iterable | None = None, **options) -> tqdm:
+    """A tqdm bar that redraws live on a terminal but writes only now and then into a log."""
+    if not sys.stderr.isatty():
+        options.setdefault("mininterval", PROGRESS_LOG_INTERVAL_S)
+    return tqdm(iterable, **options)
+
+
 def remove_stale_scratch() -> list[Path]:
     """Remove frame stores whose process is gone (kill -9 skips cleanup; 4K ones take GBs)."""
     removed = []
@@ -310,8 +321,8 @@ def make_clip(
             save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)
         clock = time.perf_counter()
-        with tqdm(total=preset.frames_forward, desc=f"  frames {source.name}", unit="frame",
-                  leave=False, disable=not show_progress) as bar:
+        with progress_bar(total=preset.frames_forward, desc=f"  frames {source.name}",
+                          unit="frame", leave=False, disable=not show_progress) as bar:
             frames = render_clip_frames(prepared, preset, options.threads, bar.update)
             with atomic_output(output, CLIP_SUFFIX) as temp_path:
                 result.frames = encode_frames(temp_path, frames, preset)
@@ -401,7 +412,8 @@ def run_folder(
                                       error=f"{manifest.path}: image {name!r}: no such photo "
                                       f"in {folder}"))
     try:
-        for source in tqdm(sources, desc="photos", unit="photo", disable=not show_progress):
+        for source in progress_bar(sources, desc="photos", unit="photo",
+                                   disable=not show_progress):
             entry = manifest.entry(source.name) if manifest else None
             output = output_folder / names[source]
             fingerprint = source_fingerprint(source)
@@ -443,8 +455,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     results: list[PlanResult] = []
     entries: dict[str, dict] = {}
     previews = []
-    for source in tqdm(list_images(folder), desc="planning", unit="photo",
-                       disable=not show_progress):
+    for source in progress_bar(list_images(folder), desc="planning", unit="photo",
+                               disable=not show_progress):
         started = time.perf_counter()
         try:
             photo = read_image(source)

@@ -71,3 +71,21 @@ def test_save_depth_writes_a_16_bit_disparity_and_a_preview(tmp_path, quick_pres
     assert max(disparity.shape) == 1024 and len(np.unique(disparity)) > 10
     preview = cv2.imread(str(tmp_path / "out" / f"{source.stem}.depth-preview.png"))
     assert preview.shape[:2] == disparity.shape
+
+
+def test_progress_into_a_log_is_a_few_lines_not_a_redraw_per_frame(tmp_path):
+    from kbbatch.images import write_image
+
+    from .conftest import textured_image
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    write_image(folder / "texture.png", textured_image(360, 640))
+    command = [sys.executable, "-m", "kbbatch", str(folder), "--preset", "preview",
+               "--duration", "3", "--depth", "ramp"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    refreshes = [part for part in result.stderr.replace("\r", "\n").split("\n")
+                 if "frames texture.png" in part]
+    assert refreshes, "progress must still be shown"
+    assert len(refreshes) <= 4, f"{len(refreshes)} progress refreshes written into a log"
