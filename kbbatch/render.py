@@ -22,10 +22,10 @@ SOFT_Z_DISPARITY_PX = 0.5
 
 CRACK_DISPARITY_PX = 1.0
 """A pixel whose two opposite neighbours are nearer by this much disparity is background shining
-through a crack in a magnified foreground (the paper's z-buffer filter)."""
+through a crack in a magnified foreground (the paper's z-buffer filter): it is emptied."""
 
 MIN_SPLAT_WEIGHT = 1e-3
-"""Bilinear weights below this neither claim the z-buffer nor colour a pixel."""
+"""Bilinear weights below this neither raise the z-buffer nor colour a pixel."""
 
 NEAR_PLANE = 1e-3
 """Points closer to the camera than this (working units) are behind it and skipped."""
@@ -135,13 +135,13 @@ def _splat_view(
 
 
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
-    """Render a view: z-buffer, crack filter, soft-z bilinear splat, normalise.
+    """Render a view: soft z-buffered bilinear splats, crack filter, normalise.
 
     disparity_scale converts inverse depth into working disparity pixels (f * baseline), so
     the tolerances mean the same at every output size.
     """
     # Interleaved (red, green, blue, weight): each splat touches one 16-byte cell; the nearest
-    # surface's inverse depth lives in its own compact array for the z pass.
+    # surface's inverse depth lives in its own compact array for the z tests.
     accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
     front = np.empty((view.height_px, view.width_px), np.float32)
     _splat_view(cloud, view, disparity_scale, accumulator, front)
@@ -245,12 +245,10 @@ def _splat_kernel(
     xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
     accumulator, front, clear,
 ):
-    # The per-pixel work is written out by hand on purpose: helpers taking the buffers, and
-    # float64 promotion, made this loop two to three times slower; one loop shared by both
-    # passes behind a flag measured 13% slower than the two below. All arithmetic is float32.
+    # One pass of soft z-buffering, then the crack filter. All arithmetic is float32: float64
+    # promotion made this loop two to three times slower.
     height, width = front.shape
     one = np.float32(1.0)
-    min_weight = np.float32(MIN_SPLAT_WEIGHT)
     if clear:  # render_frame's finishing pass leaves its buffer cleared for the next frame
         accumulator[:] = 0.0
     front[:] = 0.0
@@ -260,8 +258,6 @@ def _splat_kernel(
     frac_y = np.empty(PROJECT_CHUNK, np.float32)
     inv_zs = np.empty(PROJECT_CHUNK, np.float32)
     count = zs.shape[0]
-    # Pass 1: the nearest surface (largest inverse depth) per pixel, over each point's four
-    # bilinear pixels.
     for start in range(0, count, PROJECT_CHUNK):
         _project_chunk(
             xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
@@ -275,85 +271,56 @@ def _splat_kernel(
             fx = frac_x[j]
             fy = frac_y[j]
             inv_z = inv_zs[j]
-            if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
-                # Interior: all four pixels exist (the common case, unrolled).
-                if (one - fx) * (one - fy) > min_weight and inv_z > front[y0, x0]:
-                    front[y0, x0] = inv_z
-                if fx * (one - fy) > min_weight and inv_z > front[y0, x0 + 1]:
-                    front[y0, x0 + 1] = inv_z
-                if (one - fx) * fy > min_weight and inv_z > front[y0 + 1, x0]:
-                    front[y0 + 1, x0] = inv_z
-                if fx * fy > min_weight and inv_z > front[y0 + 1, x0 + 1]:
-                    front[y0 + 1, x0 + 1] = inv_z
-                continue
-            for k in range(4):  # at the frame's edge: only the corners inside
-                inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
-                if inside and w > min_weight and inv_z > front[yy, xx]:
-                    front[yy, xx] = inv_z
-    # Pass 2: close cracks where background shines through a magnified foreground.
-    _filter_cracks(front, crack_inv_z)
-    # Pass 3: splat every point that lies on the front surface, weighted bilinearly.
-    for start in range(0, count, PROJECT_CHUNK):
-        _project_chunk(
-            xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
-            cols, rows, frac_x, frac_y, inv_zs,
-        )
-        for j in range(min(PROJECT_CHUNK, count - start)):
-            x0 = cols[j]
-            if x0 == _OUTSIDE:
-                continue
-            y0 = rows[j]
-            fx = frac_x[j]
-            fy = frac_y[j]
             i = start + j
             r = np.float32(colours[i, 0])
             g = np.float32(colours[i, 1])
             b = np.float32(colours[i, 2])
-            lowest = inv_zs[j] + soft_inv_z  # a pixel's front may be at most this near
             if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
                 # Interior: all four pixels exist (the common case, unrolled).
-                w00 = (one - fx) * (one - fy)
-                w01 = fx * (one - fy)
-                w10 = (one - fx) * fy
-                w11 = fx * fy
-                if w00 > min_weight and front[y0, x0] <= lowest:
-                    cell = accumulator[y0, x0]
-                    cell[0] += w00 * r
-                    cell[1] += w00 * g
-                    cell[2] += w00 * b
-                    cell[3] += w00
-                if w01 > min_weight and front[y0, x0 + 1] <= lowest:
-                    cell = accumulator[y0, x0 + 1]
-                    cell[0] += w01 * r
-                    cell[1] += w01 * g
-                    cell[2] += w01 * b
-                    cell[3] += w01
-                if w10 > min_weight and front[y0 + 1, x0] <= lowest:
-                    cell = accumulator[y0 + 1, x0]
-                    cell[0] += w10 * r
-                    cell[1] += w10 * g
-                    cell[2] += w10 * b
-                    cell[3] += w10
-                if w11 > min_weight and front[y0 + 1, x0 + 1] <= lowest:
-                    cell = accumulator[y0 + 1, x0 + 1]
-                    cell[0] += w11 * r
-                    cell[1] += w11 * g
-                    cell[2] += w11 * b
-                    cell[3] += w11
+                _soft_z(front, accumulator, y0, x0, (one - fx) * (one - fy), inv_z, soft_inv_z,
+                        r, g, b)
+                _soft_z(front, accumulator, y0, x0 + 1, fx * (one - fy), inv_z, soft_inv_z,
+                        r, g, b)
+                _soft_z(front, accumulator, y0 + 1, x0, (one - fx) * fy, inv_z, soft_inv_z,
+                        r, g, b)
+                _soft_z(front, accumulator, y0 + 1, x0 + 1, fx * fy, inv_z, soft_inv_z, r, g, b)
                 continue
             for k in range(4):  # at the frame's edge: only the corners inside
                 inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
-                if inside and w > min_weight and front[yy, xx] <= lowest:
-                    cell = accumulator[yy, xx]
-                    cell[0] += w * r
-                    cell[1] += w * g
-                    cell[2] += w * b
-                    cell[_WEIGHT] += w
+                if inside:
+                    _soft_z(front, accumulator, yy, xx, w, inv_z, soft_inv_z, r, g, b)
+    _clear_cracks(front, accumulator, crack_inv_z)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _soft_z(front, accumulator, yy, xx, w, inv_z, soft_inv_z, r, g, b):
+    """Splat one bilinear corner with soft z-buffering.
+
+    A point clearly nearer than the pixel's front surface restarts the pixel, one within
+    soft_inv_z of it blends in, and a farther one is hidden. The front is raised with max(),
+    not a branch: which of two blending points is nearer is a coin toss the CPU mispredicts.
+    """
+    if w <= np.float32(MIN_SPLAT_WEIGHT):
+        return
+    surface = front[yy, xx]
+    if surface < inv_z - soft_inv_z:
+        front[yy, xx] = inv_z
+        accumulator[yy, xx, 0] = w * r
+        accumulator[yy, xx, 1] = w * g
+        accumulator[yy, xx, 2] = w * b
+        accumulator[yy, xx, _WEIGHT] = w
+    elif surface <= inv_z + soft_inv_z:
+        front[yy, xx] = max(surface, inv_z)
+        accumulator[yy, xx, 0] += w * r
+        accumulator[yy, xx, 1] += w * g
+        accumulator[yy, xx, 2] += w * b
+        accumulator[yy, xx, _WEIGHT] += w
 
 
 @numba.njit(cache=True, nogil=True)
-def _filter_cracks(front, crack_inv_z):
-    """Give a pixel the average inverse depth of two opposite neighbours that are clearly nearer."""
+def _clear_cracks(front, accumulator, crack_inv_z):
+    """Empty the pixels where background shines through a crack in a magnified foreground:
+    two opposite neighbours are nearer by crack_inv_z. They are filled like any hole."""
     height, width = front.shape
     # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
     above = front[0].copy()
@@ -364,14 +331,14 @@ def _filter_cracks(front, crack_inv_z):
         for xx in range(1, width - 1):
             threshold = row[xx] + crack_inv_z
             # Opposite neighbour pairs: horizontal, vertical and both diagonals.
-            if row[xx - 1] > threshold and row[xx + 1] > threshold:
-                front[yy, xx] = 0.5 * (row[xx - 1] + row[xx + 1])
-            elif above[xx] > threshold and below[xx] > threshold:
-                front[yy, xx] = 0.5 * (above[xx] + below[xx])
-            elif above[xx - 1] > threshold and below[xx + 1] > threshold:
-                front[yy, xx] = 0.5 * (above[xx - 1] + below[xx + 1])
-            elif above[xx + 1] > threshold and below[xx - 1] > threshold:
-                front[yy, xx] = 0.5 * (above[xx + 1] + below[xx - 1])
+            if (
+                (row[xx - 1] > threshold and row[xx + 1] > threshold)
+                or (above[xx] > threshold and below[xx] > threshold)
+                or (above[xx - 1] > threshold and below[xx + 1] > threshold)
+                or (above[xx + 1] > threshold and below[xx - 1] > threshold)
+            ):
+                front[yy, xx] = 0.0
+                accumulator[yy, xx, :] = 0.0
         above, row = row, above
 
 

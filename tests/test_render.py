@@ -113,45 +113,43 @@ def test_rendering_is_deterministic():
 
 
 def reference_rendering(cloud, view, disparity_scale):
-    """The three passes written plainly in numpy, to check the compiled kernel against."""
+    """The renderer written plainly, point by point in float64, to check the kernel against."""
     height, width = view.height_px, view.width_px
-    depth = cloud.z.astype(np.float64) - view.position[2]
-    ahead = depth > NEAR_PLANE
-    inv_z = np.where(ahead, 1.0 / np.where(ahead, depth, 1.0), 0.0)
-    px = view.focal_px * (cloud.x - view.position[0]) * inv_z + view.principal_x_px - 0.5
-    py = view.focal_px * (cloud.y - view.position[1]) * inv_z + view.principal_y_px - 0.5
-    seen = ahead & (px > -1) & (py > -1) & (px < width) & (py < height)
-    px, py, inv_z, colour = px[seen], py[seen], inv_z[seen], cloud.colour[seen].astype(np.float64)
-    x0, y0 = np.floor(px).astype(int), np.floor(py).astype(int)
-    fx, fy = px - x0, py - y0
-    corners = []
-    for dy in (0, 1):
-        for dx in (0, 1):
-            weight = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-            xx, yy = x0 + dx, y0 + dy
-            ok = (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height) & (weight > MIN_SPLAT_WEIGHT)
-            corners.append((yy[ok] * width + xx[ok], weight[ok], ok))
-    front = np.zeros(height * width)
-    for pixel, _, ok in corners:
-        np.maximum.at(front, pixel, inv_z[ok])
-    front = front.reshape(height, width)
-    filtered = front.copy()
+    soft = SOFT_Z_DISPARITY_PX / disparity_scale
     crack = CRACK_DISPARITY_PX / disparity_scale
+    front = np.zeros((height, width))
+    accumulator = np.zeros((height, width, 4))
+    for x, y, z, colour in zip(cloud.x, cloud.y, cloud.z, cloud.colour, strict=True):
+        depth = float(z) - view.position[2]
+        if depth <= NEAR_PLANE:
+            continue
+        px = view.focal_px * (float(x) - view.position[0]) / depth + view.principal_x_px - 0.5
+        py = view.focal_px * (float(y) - view.position[1]) / depth + view.principal_y_px - 0.5
+        if not (-1 < px < width and -1 < py < height):
+            continue
+        x0, y0 = int(np.floor(px)), int(np.floor(py))
+        for dy in (0, 1):
+            for dx in (0, 1):
+                xx, yy = x0 + dx, y0 + dy
+                weight = (px - x0 if dx else 1 - (px - x0)) * (py - y0 if dy else 1 - (py - y0))
+                if not (0 <= xx < width and 0 <= yy < height) or weight <= MIN_SPLAT_WEIGHT:
+                    continue
+                values = weight * np.array([*colour.astype(float), 1.0])
+                if front[yy, xx] < 1 / depth - soft:  # clearly nearer: the pixel starts over
+                    front[yy, xx] = 1 / depth
+                    accumulator[yy, xx] = values
+                elif front[yy, xx] <= 1 / depth + soft:  # the same surface: blend
+                    front[yy, xx] = max(front[yy, xx], 1 / depth)
+                    accumulator[yy, xx] += values
+    unfiltered = front.copy()
     for yy in range(1, height - 1):
         for xx in range(1, width - 1):
-            for (ay, ax), (by, bx) in (((0, -1), (0, 1)), ((-1, 0), (1, 0)),
-                                       ((-1, -1), (1, 1)), ((-1, 1), (1, -1))):
-                a, b = front[yy + ay, xx + ax], front[yy + by, xx + bx]
-                if min(a, b) > front[yy, xx] + crack:
-                    filtered[yy, xx] = (a + b) / 2
-                    break
-    accumulator = np.zeros((height * width, 4))
-    soft = SOFT_Z_DISPARITY_PX / disparity_scale
-    for pixel, weight, ok in corners:
-        on_front = filtered.reshape(-1)[pixel] <= inv_z[ok] + soft
-        values = np.concatenate([colour[ok], np.ones((ok.sum(), 1))], axis=1) * weight[:, None]
-        np.add.at(accumulator, pixel[on_front], values[on_front])
-    return accumulator.reshape(height, width, 4)
+            threshold = unfiltered[yy, xx] + crack
+            pairs = (((0, -1), (0, 1)), ((-1, 0), (1, 0)), ((-1, -1), (1, 1)), ((-1, 1), (1, -1)))
+            if any(min(unfiltered[yy + ay, xx + ax], unfiltered[yy + by, xx + bx]) > threshold
+                   for (ay, ax), (by, bx) in pairs):
+                accumulator[yy, xx] = 0.0
+    return accumulator
 
 
 def test_kernel_matches_a_plain_reference_with_points_behind_and_beside_the_camera():
@@ -178,3 +176,21 @@ def test_kernel_matches_a_plain_reference_with_points_behind_and_beside_the_came
         rendering.colour[covered], expected[..., :3][covered] / expected[..., 3:][covered],
         atol=0.05,
     )
+
+
+def test_points_within_the_soft_range_blend_and_the_pixel_keeps_the_nearest_depth():
+    view = working_view(SCENE, (0.0, 0.0, 0.0))
+    # Three points on pixel (10, 20), farthest first: two within the soft range, one far behind.
+    depth = np.array([FAR, 100.5, 100.0, 100.2], np.float32)
+    scale = depth / view.focal_px
+    cloud = PointCloud(
+        ((20.5 - view.principal_x_px) * scale).astype(np.float32),
+        ((10.5 - view.principal_y_px) * scale).astype(np.float32),
+        depth,
+        np.array([[0, 0, 255], [200, 0, 0], [100, 0, 0], [0, 0, 0]], np.uint8),
+    )
+    rendering = render(cloud, view, DISPARITY_SCALE)
+    assert 1 / 100.0 - 1 / 100.5 < SOFT_Z_DISPARITY_PX / DISPARITY_SCALE < 1 / 100.0 - 1 / FAR
+    np.testing.assert_allclose(rendering.weight[10, 20], 3.0, rtol=1e-5)
+    np.testing.assert_allclose(rendering.colour[10, 20], [100.0, 0.0, 0.0], atol=1e-3)
+    np.testing.assert_allclose(rendering.depth[10, 20], 100.0, rtol=1e-5)
