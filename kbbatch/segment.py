@@ -85,9 +85,11 @@ def semantic_labels(image: np.ndarray) -> np.ndarray | None:
     spec = models.REGISTRY["deeplabv3-mnv2-pascal"]
     session = models.load(spec.name)
     scores = session.run(None, {session.get_inputs()[0].name: models.prepare_input(spec, image)})
-    labels = np.argmax(scores[0][0], axis=-1).astype(np.uint8)
     height, width = image.shape[:2]
-    return cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
+    # The scores, not the labels, are brought to the image size: labels from a 257 px grid
+    # would give every mask a staircase outline, which the fill then traces into the background.
+    scores = cv2.resize(scores[0][0], (width, height), interpolation=cv2.INTER_LINEAR)
+    return np.argmax(scores, axis=-1).astype(np.uint8)
 
 
 @functools.cache
