@@ -37,3 +37,51 @@ def test_bad_depth_files_get_a_clear_error(tmp_path, data, reason):
     with pytest.raises(DepthError, match=reason) as caught:
         estimate_disparity(textured_image(40, 60), photo)
     assert "bad.depth.npy" in str(caught.value)
+
+
+def write_exr(path, channels: dict) -> None:
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, channels) as exr:
+        exr.write(str(path))
+
+
+def test_openexr_depth_pass_with_an_infinite_sky_is_honoured(tmp_path):
+    photo = tmp_path / "render.png"
+    depth = np.full((40, 60), np.inf, np.float32)  # a renderer's empty sky
+    depth[20:] = 8.0
+    depth[25:35, 10:30] = 2.0  # a near box on the ground
+    colour = np.zeros((40, 60), np.float32)
+    write_exr(tmp_path / "render.depth.exr", {"R": colour, "G": colour, "B": colour,
+                                              "ViewLayer.Depth.Z": depth})
+    result = estimate_disparity(textured_image(80, 120), photo)
+    assert result.backend == "file" and result.disparity.shape == (80, 120)
+    assert result.disparity[60, 40] == pytest.approx(4 * result.disparity[45, 100], rel=1e-3)
+    # The sky takes the farthest known depth: as far as the ground, not a division by zero.
+    assert result.disparity[5, 5] == pytest.approx(result.disparity[45, 100], rel=1e-3)
+
+
+def test_openexr_without_a_depth_channel_or_corrupt_gets_a_clear_error(tmp_path):
+    plane = np.ones((40, 60), np.float32)
+    write_exr(tmp_path / "a.depth.exr", {"N.X": plane, "N.Y": plane})
+    with pytest.raises(DepthError, match=r"a\.depth\.exr: no depth channel among \['N.X', 'N.Y'\]"):
+        estimate_disparity(textured_image(40, 60), tmp_path / "a.jpg")
+    (tmp_path / "b.depth.exr").write_bytes(b"v/1\x01 not really an exr")
+    with pytest.raises(DepthError, match=r"b\.depth\.exr: not a readable OpenEXR file"):
+        estimate_disparity(textured_image(40, 60), tmp_path / "b.jpg")
+    rng = np.random.default_rng(1)
+    write_exr(tmp_path / "whole.exr", {"Z": rng.random((400, 600), dtype=np.float32)})
+    whole = (tmp_path / "whole.exr").read_bytes()
+    (tmp_path / "c.depth.exr").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(DepthError, match=r"c\.depth\.exr: not a readable OpenEXR file"):
+        estimate_disparity(textured_image(400, 600), tmp_path / "c.jpg")
+
+
+def test_openexr_without_its_package_says_how_to_install_it(tmp_path, monkeypatch):
+    import sys
+
+    write_exr(tmp_path / "c.depth.exr", {"Z": np.ones((40, 60), np.float32)})
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)  # as on a machine without the extra
+    with pytest.raises(DepthError, match=r'c\.depth\.exr: .*pip install "kbbatch\[exr\]"'):
+        estimate_disparity(textured_image(40, 60), tmp_path / "c.jpg")

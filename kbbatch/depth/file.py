@@ -1,7 +1,9 @@
 """Depth or disparity maps supplied by the user beside the photo.
 
-`<stem>.depth.png|.npy` holds depth (larger is farther); `<stem>.disparity.png|.npy` holds
-disparity (larger is nearer). PNGs may be 8 or 16-bit; zero marks an unknown pixel.
+`<stem>.depth.png|.npy|.exr` holds depth (larger is farther); `<stem>.disparity.png|.npy|.exr`
+holds disparity (larger is nearer). PNGs may be 8 or 16-bit; zero marks an unknown pixel, and
+so does infinite depth (a renderer's empty sky). OpenEXR files, as 3D software writes its depth
+passes, need the optional OpenEXR package (`pip install "kbbatch[exr]"`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,11 @@ ASPECT_TOLERANCE = 0.02
 """A map whose aspect differs from the photo's by more than this is refused, not stretched."""
 
 DEPTH_FILE_KINDS = ("depth", "disparity")
-DEPTH_FILE_SUFFIXES = (".png", ".npy")
+DEPTH_FILE_SUFFIXES = (".png", ".npy", ".exr")
+
+EXR_DEPTH_CHANNELS = ("Z", "depth", "*.Z", "Y", "R")
+"""Channels an OpenEXR map is read from, in order of preference (*.Z: a render layer's depth
+pass; Y or R: a map saved as an image); else the only channel there is."""
 
 
 def find_depth_file(photo_path: Path) -> Path | None:
@@ -31,8 +37,10 @@ def find_depth_file(photo_path: Path) -> Path | None:
 
 
 def load_map(path: Path) -> np.ndarray:
-    """A single-channel float32 map from a PNG (8/16-bit) or .npy file."""
-    if path.suffix.lower() == ".npy":
+    """A single-channel float32 map from a PNG (8/16-bit), .npy or OpenEXR file."""
+    if path.suffix.lower() == ".exr":
+        data = load_exr(path)
+    elif path.suffix.lower() == ".npy":
         try:
             data = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as error:
@@ -49,12 +57,36 @@ def load_map(path: Path) -> np.ndarray:
     return data.astype(np.float32)
 
 
+def load_exr(path: Path) -> np.ndarray:
+    """The depth channel of an OpenEXR file (see EXR_DEPTH_CHANNELS)."""
+    try:
+        import OpenEXR
+    except ImportError:
+        raise DepthError(f'{path}: reading OpenEXR needs the OpenEXR package: '
+                         f'pip install "kbbatch[exr]"') from None
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            channels = {name: channel.pixels for name, channel in exr.channels().items()}
+    except Exception as error:  # the bindings raise plain exceptions for bad files
+        raise DepthError(f"{path}: not a readable OpenEXR file ({error})") from error
+    preferred = [
+        name for wanted in EXR_DEPTH_CHANNELS for name in sorted(channels)
+        if name == wanted or (wanted.startswith("*") and name.endswith(wanted[1:]))
+    ]
+    if preferred:
+        return np.asarray(channels[preferred[0]])
+    if len(channels) == 1:
+        return np.asarray(next(iter(channels.values())))
+    raise DepthError(f"{path}: no depth channel among {sorted(channels)} "
+                     f"(expected one of {', '.join(EXR_DEPTH_CHANNELS)})")
+
+
 def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, width: int
                        ) -> np.ndarray:
     """Validate a user map and turn it into disparity at the given size."""
-    if not np.isfinite(data).all():
+    if np.isnan(data).any() or (kind == "disparity" and np.isinf(data).any()):
         raise DepthError(f"{path}: contains NaN or infinite values")
-    valid = data > 0
+    valid = (data > 0) & np.isfinite(data)  # infinite depth: as far as the farthest known
     if valid.sum() < 0.5 * data.size:
         raise DepthError(f"{path}: fewer than half of its pixels hold a positive value")
     values = data[valid]
