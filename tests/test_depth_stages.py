@@ -111,41 +111,38 @@ def test_depth_cache_key_changes_when_models_appear(tmp_path, monkeypatch):
     assert without != with_detector, "depth made without a model must not be reused with it"
 
 
-def test_real_models_find_two_people(monkeypatch):
-    models_dir = SHARED / "models"
-    if not (models_dir / "yolox_nano_coco_416.onnx").is_file():
-        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
+def two_people_at_working_size(monkeypatch, model_file: str) -> np.ndarray:
+    """Photo 03 at the working size, with the real models in ../shared selected."""
     import cv2
 
     from kbbatch.camera import working_size
     from kbbatch.images import read_image
-    from kbbatch.segment import find_instances
 
+    models_dir = SHARED / "models"
+    if not (models_dir / model_file).is_file():
+        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
     monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
     photo = read_image(SHARED / "photos" / "03_portrait_two_people_obama_biden.jpg")
     width, height = working_size(photo.shape[1], photo.shape[0])
-    instances = find_instances(cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA))
+    return cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def test_real_models_find_two_people(monkeypatch):
+    from kbbatch.segment import find_instances
+
+    photo = two_people_at_working_size(monkeypatch, "yolox_nano_coco_416.onnx")
+    instances = find_instances(photo)
     assert [i.class_name for i in instances] == ["person", "person"]
     left, right = sorted(instances, key=lambda i: i.box[0])
     assert left.box[2] <= right.box[0] + 20, "two separate people, not one torn object"
-    assert all(i.mask.sum() > 0.1 * width * height for i in instances)
+    assert all(i.mask.sum() > 0.1 * photo.shape[0] * photo.shape[1] for i in instances)
 
 
 def test_real_semantic_labels_follow_the_outline_not_the_networks_grid(monkeypatch):
-    models_dir = SHARED / "models"
-    if not (models_dir / "deeplabv3_mnv2_pascal_257.onnx").is_file():
-        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
-    import cv2
-
-    from kbbatch.camera import working_size
-    from kbbatch.images import read_image
     from kbbatch.segment import VOC_INDEX_OF, semantic_labels
 
-    monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
-    photo = read_image(SHARED / "photos" / "03_portrait_two_people_obama_biden.jpg")
-    width, height = working_size(photo.shape[1], photo.shape[0])
-    labels = semantic_labels(cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA))
-    person = labels == VOC_INDEX_OF["person"]
+    photo = two_people_at_working_size(monkeypatch, "deeplabv3_mnv2_pascal_257.onnx")
+    person = semantic_labels(photo) == VOC_INDEX_OF["person"]
     assert person.mean() > 0.3
     # Columns where the person mask starts or ends along a row: labels scaled up from the
     # network's 257-column grid can only change at about 257 places, a real outline anywhere.
