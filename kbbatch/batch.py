@@ -116,10 +116,8 @@ def prepare_scene(
 ) -> PreparedScene:
     """Depth, plan and the extended point cloud for one photo."""
     clock = time.perf_counter()
-    width, height = compute_working_size(photo.shape[1], photo.shape[0])
-    working = resize_to(photo, width, height)
-    depth_result = cached_disparity(working, photo_path, options)
-    depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
+    working, depth_result, depth = working_depth(photo, photo_path, options)
+    height, width = working.shape[:2]
     timings["depth"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -139,6 +137,16 @@ def prepare_scene(
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
                          depth_result.disparity)
+
+
+def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions
+                  ) -> tuple[np.ndarray, DepthResult, np.ndarray]:
+    """The photo at the working size, its depth result, and depth in working units."""
+    width, height = compute_working_size(photo.shape[1], photo.shape[0])
+    working = resize_to(photo, width, height)
+    depth_result = cached_disparity(working, photo_path, options)
+    depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
+    return working, depth_result, depth
 
 
 def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions
@@ -435,6 +443,7 @@ def run_folder(
         temp_path.write_text(report.to_json(), encoding="utf-8")
     return report
 
+
 @dataclass
 class PlanResult:
     source: str
@@ -460,12 +469,9 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         started = time.perf_counter()
         try:
             photo = read_image(source)
-            width, height = compute_working_size(photo.shape[1], photo.shape[0])
-            working = resize_to(photo, width, height)
-            disparity = cached_disparity(working, source, options).disparity
-            depth = depth_from_disparity(disparity, paper.focal_px(max(width, height)))
+            working, _, depth = working_depth(photo, source, options)
             plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
-            entry = plan_to_entry(plan, photo.shape[1], width)
+            entry = plan_to_entry(plan, photo.shape[1], working.shape[1])
             entries[source.name] = entry
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             write_image(preview_dir / f"{source.stem}.jpg", preview)

@@ -134,17 +134,23 @@ def _splat_view(
     )
 
 
+def _splat_new(cloud: PointCloud, view: View, disparity_scale: float
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Splat into new buffers. Interleaved (red, green, blue, weight): each splat touches one
+    16-byte cell; the front surface's inverse depth lives in its own compact array."""
+    accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
+    front = np.empty((view.height_px, view.width_px), np.float32)
+    _splat_view(cloud, view, disparity_scale, accumulator, front)
+    return accumulator, front
+
+
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     """Render a view: soft z-buffered bilinear splats, crack filter, normalise.
 
     disparity_scale converts inverse depth into working disparity pixels (f * baseline), so
     the tolerances mean the same at every output size.
     """
-    # Interleaved (red, green, blue, weight): each splat touches one 16-byte cell; the nearest
-    # surface's inverse depth lives in its own compact array for the z tests.
-    accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
-    front = np.empty((view.height_px, view.width_px), np.float32)
-    _splat_view(cloud, view, disparity_scale, accumulator, front)
+    accumulator, front = _splat_new(cloud, view, disparity_scale)
     colour = np.empty((view.height_px, view.width_px, 3), np.float32)
     depth = np.empty((view.height_px, view.width_px), np.float32)
     weight = np.empty((view.height_px, view.width_px), np.float32)
@@ -173,9 +179,7 @@ def _normalise_kernel(accumulator, front, colour, depth, weight):
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """Which pixels of a view the cloud covers (the planner's disocclusion test)."""
-    accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
-    front = np.empty((view.height_px, view.width_px), np.float32)
-    _splat_view(cloud, view, disparity_scale, accumulator, front)
+    accumulator, _ = _splat_new(cloud, view, disparity_scale)
     return accumulator[..., _WEIGHT] > MIN_SPLAT_WEIGHT
 
 
