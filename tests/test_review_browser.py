@@ -7,6 +7,7 @@ Set KBBATCH_REVIEW_SCREENSHOT=docs/review.jpg to refresh the README's screenshot
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -90,6 +91,8 @@ def wait_for(driver, script: str, timeout_s: float = 120):
         time.sleep(0.2)
 
 
+CROP_WIDTHS = """return [...document.querySelectorAll('#crop-start, #crop-end')]
+  .map((box) => box.style.width);"""
 VIDEO_PLAYING = """const v = document.getElementById('preview');
 return v.readyState >= 2 && v.currentTime > 0 && !v.paused && !v.error ? v.videoWidth : 0;"""
 
@@ -129,11 +132,27 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
             assert driver.execute_script(
                 "return document.getElementById('preview').currentTime") != shown
 
-            # Keyboard: next photo and back; space plays the (cached) preview again.
+            # Keyboard to the next photo: swap its crops, reset them, look at its depth map.
             body = driver.find_element(By.TAG_NAME, "body")
             body.send_keys(Keys.ARROW_RIGHT)
             assert driver.find_element(By.ID, "photo-title").text == names[1]
-            body.send_keys(Keys.ARROW_LEFT)
+            widths = driver.execute_script(CROP_WIDTHS)
+            driver.find_element(By.ID, "swap").click()
+            assert driver.execute_script(CROP_WIDTHS) == widths[::-1]
+            driver.find_element(By.ID, "reset").click()
+            wait_for(driver, f"return JSON.stringify((() => {{ {CROP_WIDTHS} }})()) === "
+                             f"'{json.dumps(widths, separators=(',', ':'))}'")
+            driver.find_element(By.ID, "show-depth").click()
+            wait_for(driver, "const d = document.getElementById('depth');"
+                             "return !d.hidden && d.complete && d.naturalWidth > 0")
+            # The third photo is excluded; then back to the first, where space plays the
+            # (cached) preview again.
+            driver.execute_script("document.activeElement.blur()")
+            body.send_keys(Keys.ARROW_RIGHT)
+            assert driver.find_element(By.ID, "photo-title").text == names[2]
+            driver.find_element(By.ID, "exclude").click()
+            driver.execute_script("document.activeElement.blur()")
+            body.send_keys(Keys.ARROW_LEFT, Keys.ARROW_LEFT)
             assert driver.find_element(By.ID, "photo-title").text == names[0]
             body.send_keys(" ")
             wait_for(driver, VIDEO_PLAYING)
@@ -154,8 +173,10 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
     finally:
         driver.quit()
 
-    entry = load_manifest(manifest).entry(names[0]).data
-    assert load_manifest(manifest).entry(names[1]) is None  # untouched photos stay automatic
+    saved = load_manifest(manifest)
+    entry = saved.entry(names[0]).data
+    assert saved.entry(names[1]) is None  # swapped, then reset: automatic again, no entry
+    assert saved.entry(names[2]).data == {"exclude": True}
     before, after = first["plan"], entry
     for key in ("center_x", "center_y", "width"):
         assert after["start"][key] == pytest.approx(before["start"][key], abs=0.02)
@@ -184,3 +205,5 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
     # The far background moves less than the crops (parallax), so the match is not exact.
     assert to_new < 20 and to_new < 0.5 * to_auto
     assert (out / (Path(names[1]).stem + ".mp4")).is_file()
+    assert not (out / (Path(names[2]).stem + ".mp4")).exists()
+    assert "1 photo(s) excluded" in completed.stdout
