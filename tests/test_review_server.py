@@ -266,3 +266,21 @@ def test_cli_refuses_an_invalid_manifest_naming_it(tmp_path, folder):
     result = CliRunner().invoke(main, ["review", str(folder), "--manifest", str(bad)])
     assert result.exit_code == 2
     assert "bad.json" in result.output and "easing" in result.output
+
+
+def test_a_photo_that_cannot_be_read_is_reported_not_served(tmp_path, preset):
+    photos = tmp_path / "broken"
+    photos.mkdir()
+    (photos / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    write_image(photos / "fine.png", textured_image(120, 160))
+    manifest = tmp_path / "m.json"
+    with running_server(photos, manifest, preset, OPTIONS) as served:
+        photo = {p["name"]: p for p in served.wait_planned()["photos"]}["broken.jpg"]
+        assert photo["status"] == "failed" and "broken.jpg" in photo["error"]
+        image = served.get("/api/photos/broken.jpg/image")
+        assert image.status == 422 and "broken.jpg" in image.json()["error"]
+        save = served.post("/api/save", {"entries": {"broken.jpg": EDITED}})
+        assert save.status == 422 and "broken.jpg" in save.json()["error"]
+        preview = served.post("/api/preview", {"name": "broken.jpg", "entry": {}})
+        assert preview.status == 422 and "broken.jpg" in preview.json()["error"]
+    assert not manifest.exists()

@@ -15,6 +15,7 @@ import logging
 import secrets
 import shlex
 import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
@@ -52,6 +53,8 @@ PREVIEW_MAX_DURATION_S = 2.0
 PREVIEW_FPS = 15.0
 PREVIEW_THREADS = 2
 JPEG_QUALITY = 88
+PICTURES_KEPT = 64
+"""Encoded photos and depth maps kept in memory (most recently used)."""
 REVIEW_CACHE_VERSION = 1
 """Bump when a change to planning or rendering changes cached plans or previews."""
 
@@ -103,7 +106,7 @@ class ReviewSession:
         self._lock = threading.Lock()
         self._key_locks: dict[str, threading.Lock] = {}
         self._hashes: dict[tuple[str, int, int], str] = {}
-        self._images: dict[tuple[str, str], bytes] = {}
+        self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kbbatch-plan")
 
     # -- the manifest ----------------------------------------------------------------------
@@ -194,9 +197,10 @@ class ReviewSession:
     def _size(self, name: str) -> tuple[int, int]:
         state = self.photos[name]
         if state.width_px is None:
-            self.auto_plan(name, None)
-        if state.width_px is None:
-            raise RequestError(422, state.error or f"{name}: cannot be read")
+            try:
+                self.auto_plan(name, None)
+            except ImageReadError as error:
+                raise RequestError(422, str(error)) from error
         return state.width_px, state.height_px
 
     def auto_plan(self, name: str, data: dict[str, Any] | None) -> dict[str, Any]:
@@ -290,20 +294,26 @@ class ReviewSession:
         """The photo ('image', JPEG) or its depth map ('depth', PNG) at the working size."""
         state = self._photo(name)
         key = (name, kind, self._file_hash(state.path))
-        if key not in self._images:
-            photo = read_image(state.path)
-            if kind == "image":
-                picture = resize_to(photo, *working_size(photo.shape[1], photo.shape[0]))
-                ok, data = cv2.imencode(".jpg", picture[..., ::-1],
-                                        [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-            else:
-                _, options = self._settings(name, self.entries.get(name))
-                _, depth_result, _ = working_depth(photo, state.path, options)
-                ok, data = cv2.imencode(".png", depth_picture(depth_result.disparity)[..., ::-1])
-            if not ok:
-                raise RequestError(500, f"{name}: the picture could not be encoded")
+        with self._lock:
+            if key in self._images:
+                self._images.move_to_end(key)
+                return self._images[key]
+        photo = read_image(state.path)
+        if kind == "image":
+            picture = resize_to(photo, *working_size(photo.shape[1], photo.shape[0]))
+            ok, data = cv2.imencode(".jpg", picture[..., ::-1],
+                                    [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        else:
+            _, options = self._settings(name, self.entries.get(name))
+            _, depth_result, _ = working_depth(photo, state.path, options)
+            ok, data = cv2.imencode(".png", depth_picture(depth_result.disparity)[..., ::-1])
+        if not ok:
+            raise RequestError(500, f"{name}: the picture could not be encoded")
+        with self._lock:
             self._images[key] = data.tobytes()
-        return self._images[key]
+            while len(self._images) > PICTURES_KEPT:
+                self._images.popitem(last=False)
+        return data.tobytes()
 
     def preview_preset(self, preset: Preset) -> Preset:
         """The entry's preset made small and short: same aspect, a few seconds to render."""
