@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
+import subprocess
+import sys
+import urllib.request
 from pathlib import Path
 
 import cv2
@@ -284,3 +289,22 @@ def test_a_photo_that_cannot_be_read_is_reported_not_served(tmp_path, preset):
         preview = served.post("/api/preview", {"name": "broken.jpg", "entry": {}})
         assert preview.status == 422 and "broken.jpg" in preview.json()["error"]
     assert not manifest.exists()
+
+
+def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
+    command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
+               str(tmp_path / "cli.json"), "--port", "0", "--depth", "ramp"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                               text=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
+    try:
+        first_line = process.stdout.readline()
+        url = re.search(r"http://127\.0\.0\.1:\d+/", first_line).group(0)
+        with urllib.request.urlopen(url + "api/photos", timeout=60) as response:
+            names = {p["name"] for p in json.load(response)["photos"]}
+        assert names == set(SIZES)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
