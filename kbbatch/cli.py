@@ -149,8 +149,12 @@ def review(folder: Path, manifest_path: Path, preset_name: str, planner: str,
 
     Render the saved manifest with `kbbatch FOLDER --manifest MANIFEST`.
     """
+    import logging
+
     from kbbatch.web.app import ReviewServer, ReviewSession
 
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
     preset = _load_preset(preset_name, None, None)
     options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
     try:

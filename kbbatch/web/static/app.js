@@ -161,7 +161,11 @@ function showEditor() {
   const {presetName, preset, entry} = settingsOf(name);
   $('photo-title').textContent = p.status === 'failed' ? `${name}: ${p.error}` : name;
   $('preset').value = presetName;
-  $('duration').value = entry.duration_s ?? preset.duration_s;
+  // Never under the cursor of someone typing (the page refreshes while it plans).
+  if (document.activeElement !== $('duration') || name !== $('duration').dataset.photo) {
+    $('duration').value = entry.duration_s ?? preset.duration_s;
+    $('duration').dataset.photo = name;
+  }
   $('easing').value = entry.easing ?? preset.easing;
   $('exclude').checked = Boolean(entry.exclude);
   placeCrops();
