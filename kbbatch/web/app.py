@@ -104,6 +104,7 @@ class ReviewSession:
         self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
                        if p.resolve().is_relative_to(self.folder)}
         self._lock = threading.Lock()
+        self._save_lock = threading.Lock()
         self._key_locks: dict[str, threading.Lock] = {}
         self._hashes: dict[tuple[str, int, int], str] = {}
         self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
@@ -132,6 +133,10 @@ class ReviewSession:
         """
         if not isinstance(changes, dict):
             raise RequestError(400, "'entries' must be an object of photo name -> entry or null")
+        with self._save_lock:  # one read-modify-write of the file at a time
+            return self._save(changes)
+
+    def _save(self, changes: dict[str, Any]) -> dict[str, Any]:
         try:
             merged = self._manifest_on_disk()
         except ManifestError as error:
