@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -346,6 +347,35 @@ def make_clip(
     return result
 
 
+@dataclass(frozen=True)
+class ClipJob:
+    """One photo of a batch to make into the clip at output (named and journaled already)."""
+
+    source: Path
+    output: Path
+    entry: ManifestEntry | None = None
+
+
+class ClipExecutor(Protocol):
+    """Makes the clips of a batch, yielding each job with its result once it is finished.
+
+    Jobs are pulled lazily (each is started in the journal when pulled); results may come in
+    any order; closing the iterator cancels what is outstanding."""
+
+    def render(self, jobs: Iterable[ClipJob], preset: Preset, options: ClipOptions,
+               show_progress: bool) -> Iterator[tuple[ClipJob, ClipResult]]: ...
+
+
+class LocalExecutor:
+    """One clip after another in this process, each using options.threads threads."""
+
+    def render(self, jobs: Iterable[ClipJob], preset: Preset, options: ClipOptions,
+               show_progress: bool) -> Iterator[tuple[ClipJob, ClipResult]]:
+        for job in jobs:
+            yield job, make_clip(job.source, job.output, preset, options, show_progress,
+                                 job.entry)
+
+
 @dataclass
 class RunReport:
     folder: str
@@ -399,12 +429,15 @@ def run_folder(
     manifest: Manifest | None = None,
     force: bool = False,
     fail_fast: bool = False,
+    executor: ClipExecutor | None = None,
 ) -> RunReport:
     """Every photo in a folder to a clip in output_folder; the run report is written there.
 
     Clips that are complete and up to date (same photo, same settings) are skipped unless
-    force; the journal in the output folder remembers what was made with what.
+    force; the journal in the output folder remembers what was made with what. Naming, the
+    journal and the report stay here; the executor only makes clips (here, or on a cluster).
     """
+    executor = executor or LocalExecutor()
     from kbbatch.journal import Journal, source_fingerprint
 
     check_writable(output_folder)
@@ -418,27 +451,39 @@ def run_folder(
             results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                       error=f"{manifest.path}: image {name!r}: no such photo "
                                       f"in {folder}"))
-    try:
-        for source in progress_bar(sources, desc="photos", unit="photo",
-                                   disable=not show_progress):
+    bar = progress_bar(total=len(sources), desc="photos", unit="photo",
+                       disable=not show_progress)
+
+    def jobs() -> Iterator[ClipJob]:
+        """The photos to make, each started in the journal as the executor takes it."""
+        for source in sources:
             entry = manifest.entry(source.name) if manifest else None
             if entry is not None and entry.excluded:
                 results.append(ClipResult(str(source), None, "excluded", 0.0))
+                bar.update()
                 continue
             output = output_folder / names[source]
             fingerprint = source_fingerprint(source)
             settings = clip_settings(preset, options, entry)
             if not force and journal.is_up_to_date(source.name, fingerprint, settings, output):
                 results.append(ClipResult(str(source), str(output), "skipped", 0.0))
+                bar.update()
                 continue
             journal.start(source.name, fingerprint, settings, output.name)
-            result = make_clip(source, output, preset, options, show_progress, entry)
-            journal.finish(source.name, "done" if result.status == "done" else "failed",
-                           result.seconds, result.error)
-            results.append(result)
-            if fail_fast and result.status != "done":
-                break
+            yield ClipJob(source, output, entry)
+
+    try:
+        with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
+                                ) as rendered:
+            for job, result in rendered:
+                journal.finish(job.source.name, "done" if result.status == "done" else "failed",
+                               result.seconds, result.error)
+                results.append(result)
+                bar.update()
+                if fail_fast and result.status != "done":
+                    break
     finally:
+        bar.close()
         journal.close()
     report = RunReport(str(folder), str(output_folder), preset.name, results)
     with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:

@@ -71,11 +71,21 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
 @click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
 @click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
+@click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
+              default="local", show_default=True,
+              help="Make clips here one after another, or as tasks on a Ray cluster.")
+@click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else Ray "
+              "starts on this machine).")
+@click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
+              show_default=True, help="CPUs a clip reserves on a Ray worker (its threads).")
+@click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
+              show_default=True, help="GPUs (or a fraction) a clip reserves on a Ray worker.")
 def render(folder: Path, output: Path | None, preset_name: str, planner: str,
            manifest_path: Path | None, depth_backend: str, depth_model: str | None,
            no_adjust: bool, no_refine: bool, save_depth: bool, duration: float | None,
            fps: float | None, threads: int, force: bool, fail_fast: bool,
-           quiet: bool) -> None:
+           quiet: bool, executor_name: str, ray_address: str | None,
+           ray_cpus_per_clip: float, ray_gpus_per_clip: float) -> None:
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
     preset = _load_preset(preset_name, duration, fps)
     output = output or folder / "kenburns"
@@ -83,13 +93,28 @@ def render(folder: Path, output: Path | None, preset_name: str, planner: str,
                          refine=not no_refine)
     options = ClipOptions(planner=planner, depth=depth, threads=threads, save_depth=save_depth)
     manifest = _load_manifest(manifest_path)
+    executor = _executor(executor_name, ray_address, ray_cpus_per_clip, ray_gpus_per_clip)
     try:
         report = run_folder(folder, output, preset, options, show_progress=not quiet,
-                            manifest=manifest, force=force, fail_fast=fail_fast)
+                            manifest=manifest, force=force, fail_fast=fail_fast,
+                            executor=executor)
     except OutputFolderError as error:
         raise click.ClickException(str(error)) from error
     _print_summary(report)
     sys.exit(1 if report.failed else 0)
+
+
+def _executor(name: str, ray_address: str | None, cpus_per_clip: float, gpus_per_clip: float):
+    """The local executor, or Ray's (checked to be installed before any photo is touched)."""
+    if name == "local":
+        return None
+    from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
+
+    try:
+        import_ray()
+    except RayUnavailableError as error:
+        raise click.ClickException(str(error)) from error
+    return RayExecutor(ray_address, cpus_per_clip, gpus_per_clip)
 
 
 def _load_manifest(path: Path | None):

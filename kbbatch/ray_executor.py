@@ -1,0 +1,204 @@
+"""The batch on a Ray cluster: one remote task per photo, the journal and the files on the driver.
+
+No shared file system is assumed. The driver sends each photo's bytes (and its depth file, if
+any) through Ray's object store; a worker makes the clip in its own temporary folder with the
+same one-clip pipeline as the local executor and sends the clip's bytes back; the driver writes
+it atomically and the runner records it once in the journal. Networks are cached per worker
+process (kbbatch.models keeps one session per model file), and Ray reuses worker processes, so
+they load once per worker, not once per photo.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from kbbatch.batch import CLIP_SUFFIX, ClipJob, ClipOptions, ClipResult, make_clip
+from kbbatch.depth.file import find_depth_file
+from kbbatch.images import atomic_output
+from kbbatch.manifest import ManifestEntry
+from kbbatch.presets import Preset
+
+RAY_INSTALL_HINT = 'pip install "kbbatch[ray]"'
+
+SYSTEM_FAILURE_RETRIES = 3
+"""A photo whose worker process or node dies is run again elsewhere this many times."""
+
+IN_FLIGHT_PER_SLOT = 2
+"""Tasks submitted per clip slot of the cluster: enough to keep workers busy while the driver
+writes results, few enough that photos wait on the driver rather than in the object store."""
+
+WORKER_SCRATCH_PREFIX = "kbbatch-ray-"
+
+
+class RayUnavailableError(RuntimeError):
+    pass
+
+
+def import_ray():
+    """Ray, or an error that says how to install it."""
+    try:
+        import ray
+    except ImportError as error:
+        raise RayUnavailableError(f"--executor ray needs Ray, which is not installed: "
+                                  f"{RAY_INSTALL_HINT}") from error
+    return ray
+
+
+@dataclass(frozen=True)
+class PhotoPayload:
+    """What a worker needs of one photo: its name, its bytes and its depth files' bytes."""
+
+    name: str
+    photo: bytes
+    depth_files: dict[str, bytes]  # file name -> bytes (a sidecar map, a manifest's 'depth')
+    clip_name: str
+    entry: ManifestEntry | None
+
+    @property
+    def size_bytes(self) -> int:
+        return len(self.photo) + sum(len(data) for data in self.depth_files.values())
+
+
+@dataclass(frozen=True)
+class WorkerOutcome:
+    """A clip made on a worker: the result and the files it wrote (clip, depth pictures)."""
+
+    result: ClipResult
+    files: dict[str, bytes]
+    node: str
+    pid: int
+
+
+def payload_for(job: ClipJob) -> PhotoPayload:
+    """Read a job's photo and depth files on the driver (a failure here is the worker's too)."""
+    depth_files = {}
+    sidecar = find_depth_file(job.source)
+    if sidecar is not None:
+        depth_files[sidecar.name] = sidecar.read_bytes()
+    entry = job.entry
+    if entry is not None and entry.depth_file is not None and entry.depth_file.is_file():
+        depth_files[entry.depth_file.name] = entry.depth_file.read_bytes()
+    return PhotoPayload(job.source.name, job.source.read_bytes(), depth_files, job.output.name,
+                        entry)
+
+
+def make_clip_from_bytes(payload: PhotoPayload, preset: Preset, options: ClipOptions
+                         ) -> WorkerOutcome:
+    """The unit of work on a worker: photo bytes in, clip bytes and the ClipResult out."""
+    with tempfile.TemporaryDirectory(prefix=WORKER_SCRATCH_PREFIX) as scratch:
+        inbox, outbox = Path(scratch) / "in", Path(scratch) / "out"
+        inbox.mkdir()
+        outbox.mkdir()
+        source = inbox / payload.name
+        source.write_bytes(payload.photo)
+        for name, data in payload.depth_files.items():
+            (inbox / name).write_bytes(data)
+        entry = payload.entry
+        if entry is not None and entry.depth_file is not None:
+            data = dict(entry.data, depth=entry.depth_file.name)
+            entry = replace(entry, data=data, manifest=inbox / entry.manifest.name)
+        result = make_clip(source, outbox / payload.clip_name, preset, options,
+                           show_progress=False, entry=entry)
+        files = {}
+        if result.status == "done":
+            files = {path.name: path.read_bytes() for path in outbox.iterdir() if path.is_file()}
+        result.error = result.error and result.error.replace(str(inbox), "<worker>")
+    return WorkerOutcome(result, files, os.uname().nodename, os.getpid())
+
+
+def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
+    """Write a worker's files beside the job's output, each atomically, and name them as here."""
+    result = outcome.result
+    result.source = str(job.source)
+    if result.error:
+        result.error = result.error.replace("<worker>", str(job.source.parent))
+    if result.status != "done":
+        return result
+    try:
+        for name, data in outcome.files.items():
+            path = job.output.parent / name
+            with atomic_output(path, CLIP_SUFFIX if name == job.output.name else path.suffix
+                               ) as temp_path:
+                temp_path.write_bytes(data)
+        result.output = str(job.output)
+    except OSError as error:
+        result.status, result.output = "failed", None
+        result.error = f"{job.output}: the clip could not be written ({error.strerror or error})"
+    return result
+
+
+def start_ray(ray, address: str | None) -> None:
+    """Join the cluster at address (or $RAY_ADDRESS), else start Ray on this machine alone."""
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, log_to_driver=False)
+    else:  # "local": never join a cluster someone else started here with `ray start`
+        ray.init(address="local", include_dashboard=False, log_to_driver=False)
+
+
+@dataclass(frozen=True)
+class RayExecutor:
+    """Clips made by Ray tasks: on this machine (no address) or on the cluster at address."""
+
+    address: str | None = None
+    cpus_per_clip: float = 1.0
+    gpus_per_clip: float = 0.0
+    bytes_moved: list[int] | None = None  # per clip, photo + clip bytes, when asked for
+
+    def render(self, jobs: Iterable[ClipJob], preset: Preset, options: ClipOptions,
+               show_progress: bool) -> Iterator[tuple[ClipJob, ClipResult]]:
+        ray = import_ray()
+        if not ray.is_initialized():
+            start_ray(ray, self.address)
+        remote_clip = ray.remote(
+            num_cpus=self.cpus_per_clip, num_gpus=self.gpus_per_clip,
+            max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,
+            max_calls=0,  # keep worker processes (and their networks) for the next photo
+        )(make_clip_from_bytes)
+        worker_options = replace(options, threads=max(1, round(self.cpus_per_clip)))
+        slots = int(ray.cluster_resources().get("CPU", 1) // self.cpus_per_clip)
+        in_flight = max(2, IN_FLIGHT_PER_SLOT * slots)
+        pending: dict = {}  # object ref -> (job, bytes sent)
+        queue = iter(jobs)
+        try:
+            exhausted = False
+            while pending or not exhausted:
+                while not exhausted and len(pending) < in_flight:
+                    job = next(queue, None)
+                    if job is None:
+                        exhausted = True
+                        break
+                    try:
+                        payload = payload_for(job)
+                    except OSError as error:
+                        yield job, ClipResult(str(job.source), None, "failed", 0.0,
+                                              error=f"{job.source}: unreadable ({error})")
+                        continue
+                    ref = remote_clip.remote(payload, preset, worker_options)
+                    pending[ref] = (job, payload.size_bytes)
+                if not pending:
+                    continue
+                (ref,), _ = ray.wait(list(pending), num_returns=1)
+                job, sent = pending.pop(ref)
+                yield job, self.collect(ray, ref, job, sent)
+        finally:
+            for ref in pending:
+                ray.cancel(ref)
+
+    def collect(self, ray, ref, job: ClipJob, sent: int) -> ClipResult:
+        """The result of a finished task, written here; a task Ray gave up on is a failure."""
+        try:
+            outcome: WorkerOutcome = ray.get(ref)
+        except ray.exceptions.RayError as error:
+            summary = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            return ClipResult(str(job.source), None, "failed", 0.0,
+                              error=f"{job.source}: the Ray task failed after "
+                                    f"{SYSTEM_FAILURE_RETRIES} retries "
+                                    f"({type(error).__name__}: {summary})")
+        if self.bytes_moved is not None:
+            self.bytes_moved.append(sent + sum(len(data) for data in outcome.files.values()))
+        return write_outcome(job, outcome)
