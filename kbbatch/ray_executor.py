@@ -16,7 +16,15 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from kbbatch.batch import CLIP_SUFFIX, ClipJob, ClipOptions, ClipResult, make_clip
+from kbbatch.batch import (
+    CLIP_SUFFIX,
+    SCRATCH_PREFIX,
+    ClipJob,
+    ClipOptions,
+    ClipResult,
+    make_clip,
+    remove_stale_scratch,
+)
 from kbbatch.depth.file import find_depth_file
 from kbbatch.images import atomic_output
 from kbbatch.manifest import ManifestEntry
@@ -30,8 +38,6 @@ SYSTEM_FAILURE_RETRIES = 3
 IN_FLIGHT_PER_SLOT = 2
 """Tasks submitted per clip slot of the cluster: enough to keep workers busy while the driver
 writes results, few enough that photos wait on the driver rather than in the object store."""
-
-WORKER_SCRATCH_PREFIX = "kbbatch-ray-"
 
 
 class RayUnavailableError(RuntimeError):
@@ -89,7 +95,8 @@ def payload_for(job: ClipJob) -> PhotoPayload:
 def make_clip_from_bytes(payload: PhotoPayload, preset: Preset, options: ClipOptions
                          ) -> WorkerOutcome:
     """The unit of work on a worker: photo bytes in, clip bytes and the ClipResult out."""
-    with tempfile.TemporaryDirectory(prefix=WORKER_SCRATCH_PREFIX) as scratch:
+    remove_stale_scratch()  # of workers killed mid-clip on this node
+    with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as scratch:
         inbox, outbox = Path(scratch) / "in", Path(scratch) / "out"
         inbox.mkdir()
         outbox.mkdir()
