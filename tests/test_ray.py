@@ -249,6 +249,29 @@ def test_a_killed_driver_is_rerun_without_redoing_or_losing_a_clip(
     assert all(state == "done" for state, _ in journal_rows(output).values())
 
 
+def test_ctrl_c_cancels_the_outstanding_clips_and_exits_non_zero(cluster, photo_folder, tmp_path):
+    output = tmp_path / "out"
+    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
+    driver = subprocess.Popen(kbbatch_command(photo_folder, output), env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while cluster.second_node_clip_task() is None and time.monotonic() < deadline:
+        assert driver.poll() is None, "the driver finished before it could be interrupted"
+        time.sleep(0.02)
+    driver.send_signal(signal.SIGINT)
+    stdout, stderr = driver.communicate(timeout=30)
+
+    assert driver.returncode != 0
+    assert "Aborted" in stderr
+    assert not [p for p in output.iterdir() if ".part" in p.name]
+    assert all(state != "done" or (output / f"{Path(source).stem}.mp4").is_file()
+               for source, (state, _) in journal_rows(output).items())
+    deadline = time.monotonic() + 15  # the cancelled clips stop on the workers
+    while cluster.second_node_clip_task() is not None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert cluster.second_node_clip_task() is None
+
+
 def test_a_worker_node_killed_mid_clip_has_its_photo_made_elsewhere_once(
         cluster, photo_folder, tmp_path):
     """Runs last in this module: the second node stays dead."""
