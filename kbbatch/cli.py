@@ -14,6 +14,7 @@ from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
+from kbbatch.ray_executor import RayUnavailableError
 from planners import PLANNER_NAMES
 
 
@@ -98,7 +99,7 @@ def render(folder: Path, output: Path | None, preset_name: str, planner: str,
         report = run_folder(folder, output, preset, options, show_progress=not quiet,
                             manifest=manifest, force=force, fail_fast=fail_fast,
                             executor=executor)
-    except OutputFolderError as error:
+    except (OutputFolderError, RayUnavailableError) as error:
         raise click.ClickException(str(error)) from error
     _print_summary(report)
     sys.exit(1 if report.failed else 0)
@@ -108,7 +109,7 @@ def _executor(name: str, ray_address: str | None, cpus_per_clip: float, gpus_per
     """The local executor, or Ray's (checked to be installed before any photo is touched)."""
     if name == "local":
         return None
-    from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
+    from kbbatch.ray_executor import RayExecutor, import_ray
 
     try:
         import_ray()

@@ -141,10 +141,14 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
 def start_ray(ray, address: str | None) -> None:
     """Join the cluster at address (or $RAY_ADDRESS), else start Ray on this machine alone."""
     address = address or os.environ.get("RAY_ADDRESS")
-    if address:
-        ray.init(address=address, log_to_driver=False)
-    else:  # "local": never join a cluster someone else started here with `ray start`
-        ray.init(address="local", include_dashboard=False, log_to_driver=False)
+    try:
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:  # "local": never join a cluster someone else started here with `ray start`
+            ray.init(address="local", include_dashboard=False, log_to_driver=False)
+    except (ConnectionError, ValueError, RuntimeError) as error:
+        where = f"the Ray cluster at {address}" if address else "a local Ray instance"
+        raise RayUnavailableError(f"could not start or join {where}: {error}") from error
 
 
 @dataclass(frozen=True)

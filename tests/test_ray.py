@@ -161,6 +161,23 @@ def run_kbbatch(cluster: LocalCluster, folder: Path, output: Path, *extra: str
                           text=True, timeout=150)
 
 
+def start_driver(cluster: LocalCluster, folder: Path, output: Path) -> subprocess.Popen:
+    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
+    return subprocess.Popen(kbbatch_command(folder, output), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def while_running(driver: subprocess.Popen, condition, timeout_s: float = 120.0):
+    """Poll condition() until it is true, the driver still running (the fault is mid-batch)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert driver.poll() is None, "the driver finished before the fault"
+        if found := condition():
+            return found
+        time.sleep(0.02)
+    raise AssertionError("timed out waiting for the batch")
+
+
 def journal_rows(output: Path) -> dict[str, tuple[str, int]]:
     """source -> (state, attempts) from the batch journal."""
     with sqlite3.connect(output / JOURNAL_NAME) as connection:
@@ -223,15 +240,10 @@ def test_a_killed_driver_is_rerun_without_redoing_or_losing_a_clip(
         cluster, photo_folder, tmp_path):
     photos = sorted(photo_folder.iterdir())
     output = tmp_path / "out"
-    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
-    driver = subprocess.Popen(kbbatch_command(photo_folder, output), env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while not list(output.glob("*.mp4")) and time.monotonic() < deadline:
-        assert driver.poll() is None, "the driver finished before it could be killed"
-        time.sleep(0.05)
+    driver = start_driver(cluster, photo_folder, output)
+    while_running(driver, lambda: list(output.glob("*.mp4")))
     driver.send_signal(signal.SIGKILL)
-    driver.wait()
+    driver.communicate()
     first = {p.name: p.stat().st_mtime_ns for p in output.glob("*.mp4")}
     assert 0 < len(first) < len(photos), "killed mid-batch"
     assert not (output / REPORT_NAME).exists()
@@ -251,13 +263,8 @@ def test_a_killed_driver_is_rerun_without_redoing_or_losing_a_clip(
 
 def test_ctrl_c_cancels_the_outstanding_clips_and_exits_non_zero(cluster, photo_folder, tmp_path):
     output = tmp_path / "out"
-    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
-    driver = subprocess.Popen(kbbatch_command(photo_folder, output), env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    while cluster.second_node_clip_task() is None and time.monotonic() < deadline:
-        assert driver.poll() is None, "the driver finished before it could be interrupted"
-        time.sleep(0.02)
+    driver = start_driver(cluster, photo_folder, output)
+    while_running(driver, cluster.second_node_clip_task)
     driver.send_signal(signal.SIGINT)
     stdout, stderr = driver.communicate(timeout=30)
 
@@ -277,15 +284,8 @@ def test_a_worker_node_killed_mid_clip_has_its_photo_made_elsewhere_once(
     """Runs last in this module: the second node stays dead."""
     photos = sorted(photo_folder.iterdir())
     output = tmp_path / "out"
-    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
-    driver = subprocess.Popen(kbbatch_command(photo_folder, output), env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    busy = None
-    while busy is None and time.monotonic() < deadline and driver.poll() is None:
-        busy = cluster.second_node_clip_task()
-        time.sleep(0.02)
-    assert busy is not None, "the second node never ran a clip"
+    driver = start_driver(cluster, photo_folder, output)
+    busy = while_running(driver, cluster.second_node_clip_task)
     cluster.kill_second_node()
     time.sleep(0.5)
     assert not processes().get(busy, (0, ""))[1].startswith(TASK_NAME), "the clip was killed"
