@@ -14,7 +14,7 @@ from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
-from kbbatch.ray_executor import RayUnavailableError
+from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
 from planners import PLANNER_NAMES
 
 
@@ -109,8 +109,6 @@ def _executor(name: str, ray_address: str | None, cpus_per_clip: float, gpus_per
     """The local executor, or Ray's (checked to be installed before any photo is touched)."""
     if name == "local":
         return None
-    from kbbatch.ray_executor import RayExecutor, import_ray
-
     try:
         import_ray()
     except RayUnavailableError as error:
