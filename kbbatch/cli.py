@@ -46,6 +46,23 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
         raise click.BadParameter(str(error), param_hint="--preset") from error
 
 
+def executor_options(command):
+    """--executor and the Ray options, shared by the batch and the daemon."""
+    for option in reversed([
+        click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
+                     default="local", show_default=True,
+                     help="Make clips on this machine, or as tasks on a Ray cluster."),
+        click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else "
+                     "Ray starts on this machine)."),
+        click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
+                     show_default=True, help="CPUs a clip reserves on a Ray worker (threads)."),
+        click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
+                     show_default=True, help="GPUs (or a fraction) a clip reserves on a worker."),
+    ]):
+        command = option(command)
+    return command
+
+
 @main.command()
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path),
@@ -72,15 +89,7 @@ def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset
 @click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
 @click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-@click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
-              default="local", show_default=True,
-              help="Make clips here one after another, or as tasks on a Ray cluster.")
-@click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else Ray "
-              "starts on this machine).")
-@click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
-              show_default=True, help="CPUs a clip reserves on a Ray worker (its threads).")
-@click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
-              show_default=True, help="GPUs (or a fraction) a clip reserves on a Ray worker.")
+@executor_options
 def render(folder: Path, output: Path | None, preset_name: str, planner: str,
            manifest_path: Path | None, depth_backend: str, depth_model: str | None,
            no_adjust: bool, no_refine: bool, save_depth: bool, duration: float | None,
@@ -276,9 +285,11 @@ def models_pull(name: str, sha256: str | None) -> None:
 @click.option("--settle", "settle_s", type=float, default=2.0, show_default=True,
               help="Seconds a photo's size and time must stay unchanged before it is taken.")
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
+@executor_options
 def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | None, planner: str,
-          depth_backend: str, jobs: int, poll: bool, settle_s: float, keep_sources: bool
-          ) -> None:
+          depth_backend: str, jobs: int, poll: bool, settle_s: float, keep_sources: bool,
+          executor_name: str, ray_address: str | None, ray_cpus_per_clip: float,
+          ray_gpus_per_clip: float) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
     import logging
 
@@ -288,11 +299,12 @@ def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | Non
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     preset = _load_preset(preset_name, None, None)
     options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
+    executor = _executor(executor_name, ray_address, ray_cpus_per_clip, ray_gpus_per_clip)
     settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
-                             jobs, poll, settle_s, keep_sources)
+                             jobs, poll, settle_s, keep_sources, executor)
     try:
         sys.exit(run_daemon(settings))
-    except OutputFolderError as error:
+    except (OutputFolderError, RayUnavailableError) as error:
         raise click.ClickException(str(error)) from error
 
 

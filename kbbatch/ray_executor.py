@@ -11,8 +11,10 @@ they load once per worker, not once per photo.
 from __future__ import annotations
 
 import os
+import signal
 import tempfile
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -151,6 +153,11 @@ def start_ray(ray, address: str | None) -> None:
         raise RayUnavailableError(f"could not start or join {where}: {error}") from error
 
 
+def unreadable_result(job: ClipJob, error: OSError) -> ClipResult:
+    return ClipResult(str(job.source), None, "failed", 0.0,
+                      error=f"{job.source}: unreadable ({error.strerror or error})")
+
+
 @dataclass(frozen=True)
 class RayExecutor:
     """Clips made by Ray tasks: on this machine (no address) or on the cluster at address."""
@@ -160,8 +167,8 @@ class RayExecutor:
     gpus_per_clip: float = 0.0
     bytes_moved: list[int] | None = None  # per clip, photo + clip bytes, when asked for
 
-    def render(self, jobs: Iterable[ClipJob], preset: Preset, options: ClipOptions,
-               show_progress: bool) -> Iterator[tuple[ClipJob, ClipResult]]:
+    def connect(self):
+        """Ray, started or joined, and the remote clip function with this executor's resources."""
         ray = import_ray()
         if not ray.is_initialized():
             start_ray(ray, self.address)
@@ -170,7 +177,15 @@ class RayExecutor:
             max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,
             max_calls=0,  # keep worker processes (and their networks) for the next photo
         )(make_clip_from_bytes)
-        worker_options = replace(options, threads=max(1, round(self.cpus_per_clip)))
+        return ray, remote_clip
+
+    def worker_options(self, options: ClipOptions) -> ClipOptions:
+        return replace(options, threads=max(1, round(self.cpus_per_clip)))
+
+    def render(self, jobs: Iterable[ClipJob], preset: Preset, options: ClipOptions,
+               show_progress: bool) -> Iterator[tuple[ClipJob, ClipResult]]:
+        ray, remote_clip = self.connect()
+        worker_options = self.worker_options(options)
         slots = int(ray.cluster_resources().get("CPU", 1) // self.cpus_per_clip)
         in_flight = max(2, IN_FLIGHT_PER_SLOT * slots)
         pending: dict = {}  # object ref -> (job, bytes sent)
@@ -186,8 +201,7 @@ class RayExecutor:
                     try:
                         payload = payload_for(job)
                     except OSError as error:
-                        yield job, ClipResult(str(job.source), None, "failed", 0.0,
-                                              error=f"{job.source}: unreadable ({error})")
+                        yield job, unreadable_result(job, error)
                         continue
                     ref = remote_clip.remote(payload, preset, worker_options)
                     pending[ref] = (job, payload.size_bytes)
@@ -213,3 +227,46 @@ class RayExecutor:
         if self.bytes_moved is not None:
             self.bytes_moved.append(sent + sum(len(data) for data in outcome.files.values()))
         return write_outcome(job, outcome)
+
+
+class RayClipPool:
+    """The daemon's worker pool on Ray: submit() takes what the daemon's process pool takes and
+    returns a Future of the ClipResult; the clip is made by a Ray task and written here."""
+
+    def __init__(self, executor: RayExecutor) -> None:
+        self.executor = executor
+        self.pending: set = set()
+
+    def __enter__(self) -> RayClipPool:
+        # Ray's driver installs its own SIGTERM handler (it exits at once); the daemon's stays.
+        handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+        self.ray, self.remote_clip = self.executor.connect()
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        for ref in list(self.pending):
+            self.ray.cancel(ref)
+
+    def submit(self, _local_render, source: Path, output: Path, preset: Preset,
+               options: ClipOptions, entry: ManifestEntry | None) -> Future:
+        """Like ProcessPoolExecutor.submit(_local_render, ...), but the clip is made on Ray."""
+        job, future = ClipJob(source, output, entry), Future()
+        try:
+            payload = payload_for(job)
+        except OSError as error:
+            future.set_result(unreadable_result(job, error))
+            return future
+        ref = self.remote_clip.remote(payload, preset, self.executor.worker_options(options))
+        self.pending.add(ref)
+
+        def finished(_: object) -> None:
+            self.pending.discard(ref)
+            try:
+                future.set_result(self.executor.collect(self.ray, ref, job, payload.size_bytes))
+            except BaseException as error:  # handed to the daemon, which fails the photo
+                future.set_exception(error)
+
+        ref.future().add_done_callback(finished)
+        return future

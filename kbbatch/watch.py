@@ -35,6 +35,7 @@ from kbbatch.images import is_image_file
 from kbbatch.journal import Journal, source_fingerprint
 from kbbatch.manifest import Manifest, ManifestEntry
 from kbbatch.presets import Preset
+from kbbatch.ray_executor import RayClipPool, RayExecutor
 
 log = logging.getLogger("kbbatch.watch")
 
@@ -56,6 +57,7 @@ class WatchSettings:
     poll: bool = False
     settle_s: float = 2.0
     keep_sources: bool = False
+    executor: RayExecutor | None = None  # None: --jobs processes on this machine
 
 
 def is_candidate(path: Path) -> bool:
@@ -121,7 +123,9 @@ class Daemon:
         options = replace(s.options, threads=threads)
         log.info("watching %s -> %s (preset %s, %d job(s), %s)", s.inbox, s.outbox,
                  s.preset.name, s.jobs, "polling" if s.poll else "inotify")
-        with ProcessPoolExecutor(max_workers=s.jobs, initializer=_worker_init) as pool:
+        pool = (ProcessPoolExecutor(max_workers=s.jobs, initializer=_worker_init)
+                if s.executor is None else RayClipPool(s.executor))  # --jobs: clips in flight
+        with pool:
             while not self.stopping.is_set():
                 self.collect_events()
                 self.submit_ready(pool, options)

@@ -279,6 +279,33 @@ def test_ctrl_c_cancels_the_outstanding_clips_and_exits_non_zero(cluster, photo_
     assert cluster.second_node_clip_task() is None
 
 
+def test_the_daemon_on_ray_makes_every_arrival_and_stops_on_sigterm(
+        cluster, photo_folder, tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    photos = sorted(photo_folder.iterdir())[:3]
+    command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
+               "-p", "preview", "--settle", "0.5", "--jobs", "2", "--executor", "ray"]
+    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
+    daemon = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True)
+    for photo in photos:
+        (inbox / photo.name).write_bytes(photo.read_bytes())
+    (inbox / "broken.jpg").write_bytes(b"not a photo at all" * 100)
+    arrived = {p.name for p in photos} | {"broken.jpg"}
+    handled = lambda: {p.name for p in inbox.glob("*/*") if p.suffix != ".json"}  # noqa: E731
+    while_running(daemon, lambda: handled() == arrived, timeout_s=150)
+    daemon.send_signal(signal.SIGTERM)
+    log, _ = daemon.communicate(timeout=60)
+
+    assert daemon.returncode == 0, log
+    assert sorted(p.name for p in (inbox / "done").iterdir()) == sorted(p.name for p in photos)
+    assert (inbox / "failed" / "broken.jpg").is_file()
+    assert sorted(p.name for p in outbox.glob("*.mp4")) == sorted(f"{p.stem}.mp4" for p in photos)
+    assert journal_rows(outbox) == {p.name: ("done", 1) for p in photos} | {
+        "broken.jpg": ("failed", 1)}
+
+
 def test_a_worker_node_killed_mid_clip_has_its_photo_made_elsewhere_once(
         cluster, photo_folder, tmp_path):
     """Runs last in this module: the second node stays dead."""
