@@ -13,8 +13,8 @@ from kbbatch import models as model_registry
 from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.manifest import ManifestError, load_manifest
+from kbbatch.planners import PLANNER_NAMES
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
-from planners import PLANNER_NAMES
 
 
 class DefaultCommandGroup(click.Group):

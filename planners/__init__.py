@@ -36,8 +36,8 @@ class UnknownPlannerError(ValueError):
 
 def get_planner(name: str) -> Planner:
     """A planner by name."""
-    from planners.auto import AutoPlanner
-    from planners.center import CenterPlanner, TwoDPlanner
+    from kbbatch.planners.auto import AutoPlanner
+    from kbbatch.planners.center import CenterPlanner, TwoDPlanner
 
     known: dict[str, Planner] = {
         "auto": AutoPlanner(), "center": CenterPlanner(), "2d": TwoDPlanner(),

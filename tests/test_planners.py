@@ -10,9 +10,9 @@ from kbbatch import paper
 from kbbatch.batch import ClipOptions, plan_folder, run_folder
 from kbbatch.camera import Crop, depth_from_disparity
 from kbbatch.manifest import ManifestError, load_manifest
+from kbbatch.planners import PlanRequest, get_planner
+from kbbatch.planners.auto import plan_disocclusion
 from kbbatch.presets import load_preset, with_overrides
-from planners import PlanRequest, get_planner
-from planners.auto import plan_disocclusion
 
 from .conftest import shared_photos, textured_image
 
