@@ -41,18 +41,22 @@ class DepthOptions:
 
 
 class SceneContext:
-    """Per-photo segmentation, computed at most once and only if some step asks for it."""
+    """Per-photo segmentation, computed at most once and only if some step asks for it.
+
+    The results are stored on the instance, so they are freed with it: a module-level cache
+    would keep every photo's image and masks alive for the life of a daemon.
+    """
 
     def __init__(self, image: np.ndarray) -> None:
         self.image = image
 
-    @functools.cache  # noqa: B019 - one context per photo, dropped with it
+    @functools.cached_property
     def instances(self) -> list:
         from kbbatch.segment import find_instances
 
         return find_instances(self.image)
 
-    @functools.cache  # noqa: B019
+    @functools.cached_property
     def saliency(self) -> np.ndarray | None:
         from kbbatch.segment import salient_mask
 
@@ -120,7 +124,7 @@ def estimate_disparity(image: np.ndarray, photo_path: Path | None,
             disparity = cv2.resize(disparity, (width, height), interpolation=cv2.INTER_LINEAR)
     # Pop-up cards are already flat and the ramp is a prior with nothing to adjust.
     if options.adjust and result.backend not in ("popup", "ramp"):
-        instances = context.instances()
+        instances = context.instances
         if instances:
             disparity = adjust(disparity, instances)
     log.info("depth from %s (%s)", result.backend, result.source)

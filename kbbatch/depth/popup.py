@@ -62,10 +62,10 @@ def estimate_horizon(image: np.ndarray, contacts: list[float]) -> float:
 
 def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     """(mask, grounded) of every object to pop up: instances, else salient-mask components."""
-    instances = context.instances()
+    instances = context.instances
     if instances:
         return [(i.mask, i.class_name not in GROUNDED_EXCEPTIONS) for i in instances]
-    saliency = context.saliency()
+    saliency = context.saliency
     if saliency is None:
         return []
     binary = (saliency > 0.5).astype(np.uint8)
