@@ -161,6 +161,12 @@ def models() -> None:
 def models_list() -> None:
     """Registered models, their licence and whether each is cached."""
     click.echo(f"cache: {model_registry.models_dir()}")
+    try:
+        provider = model_registry.execution_provider()
+    except model_registry.ModelError as error:
+        raise click.ClickException(str(error)) from error
+    click.echo(f"onnxruntime: {provider}, {model_registry.session_threads()} thread(s) per "
+               f"session (set {model_registry.PROVIDER_ENV} to choose the provider)")
     for spec in model_registry.REGISTRY.values():
         cached = "cached" if model_registry.cached_path(spec.name) else "missing"
         pinned = "sha256 pinned" if spec.sha256 else "no sha256 registered"
