@@ -287,13 +287,7 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
         preset = with_overrides(preset, duration_s=data.get("duration_s"))
     except PresetError as error:
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
-    if "planner" in data:
-        from kbbatch.planners import PLANNER_NAMES
-
-        if data["planner"] not in PLANNER_NAMES:
-            known = ", ".join(PLANNER_NAMES)
-            raise ManifestError(f"{entry.where('planner')}: unknown planner "
-                                f"{data['planner']!r}; available: {known}")
+    if "planner" in data:  # a registered name: checked when the manifest loaded
         options = replace(options, planner=data["planner"])
     if entry.depth_file is not None:
         options = replace(options, depth=replace(options.depth, file=str(entry.depth_file)))

@@ -1,51 +1,47 @@
 """Presets: output size, timing, motion and encoding, as TOML files validated into a dataclass.
 
-Each setting is described once, in the dataclass field's metadata (meaning and bounds); the
-validation, `kbbatch presets` and the README table are all derived from it.
+Each setting is described and bounded once, in preset.schema.json beside the shipped files,
+and validated by the same JSON Schema machinery as manifests. A preset may name another as its
+`base` and set only what differs. Codec, pixel format and encoder preset are checked against
+the ffmpeg binary when the preset loads, so a bad one fails once, naming the file and field.
 """
 
 from __future__ import annotations
 
+import functools
+import json
+import math
 import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from kbbatch.camera import EASINGS
 
-ZOOM_DIRECTIONS = ("in", "out")
-
 
 class PresetError(ValueError):
     """A preset that cannot be used; the message names the file and the field."""
 
 
-def _setting(doc: str, **bounds: Any) -> Any:
-    return field(metadata={"doc": doc, **bounds})
-
-
 @dataclass(frozen=True)
 class Preset:
-    name: str = _setting("preset name")
-    description: str = _setting("what the preset is for")
-    width_px: int = _setting("output width", min=16, max=8192, even=True)
-    height_px: int = _setting("output height", min=16, max=8192, even=True)
-    fps: float = _setting("frames per second", min=1, max=120)
-    duration_s: float = _setting("forward move in seconds (the clip plays it back too)",
-                                 min=0.2, max=120)
-    easing: str = _setting("speed curve of the move", choices=EASINGS)
-    zoom: float = _setting("crop-width ratio between the wide and the tight view", min=1.0,
-                           max=4.0)
-    zoom_direction: str = _setting("'in' ends on the tight view, 'out' starts on it",
-                                   choices=ZOOM_DIRECTIONS)
-    max_shift_px: float = _setting("largest lateral move of the crop centre, working px",
-                                   min=0, max=512)
-    codec: str = _setting("ffmpeg video encoder, e.g. libx264, libx265, libvpx-vp9")
-    crf: int = _setting("encoder constant-rate factor (lower is better and larger)", min=0,
-                        max=63)
-    pix_fmt: str = _setting("pixel format of the encoded video")
-    encoder_preset: str = _setting("encoder speed preset (x264/x265), empty for none")
+    """A validated preset; preset.schema.json says what each setting means."""
+
+    name: str
+    description: str
+    width_px: int
+    height_px: int
+    fps: float
+    duration_s: float
+    easing: str
+    zoom: float
+    zoom_direction: str
+    max_shift_px: float
+    codec: str
+    crf: int
+    pix_fmt: str
+    encoder_preset: str
 
     @property
     def frames_forward(self) -> int:
@@ -61,47 +57,48 @@ class Preset:
         return self.width_px / self.height_px
 
 
-def settings() -> list[tuple[str, str]]:
-    """(name, meaning) of every preset setting, in order."""
-    return [(f.name, f.metadata["doc"]) for f in fields(Preset)]
+@functools.cache
+def schema() -> dict[str, Any]:
+    data = json.loads(resources.files(__name__).joinpath("preset.schema.json").read_text())
+    data["properties"]["easing"]["enum"] = list(EASINGS)  # the camera's own list
+    return data
+
+
+def setting_docs() -> dict[str, str]:
+    """Meaning of every preset setting, from the schema (for `kbbatch presets`)."""
+    return {name: rule["description"] for name, rule in schema()["properties"].items()}
+
+
+def _check(data: dict[str, Any], source: str, complete: bool) -> None:
+    """Validate against the schema; `complete` also requires every setting (after bases)."""
+    import jsonschema
+
+    rules = schema() if complete else {k: v for k, v in schema().items() if k != "required"}
+    errors = sorted(jsonschema.Draft202012Validator(rules).iter_errors(data),
+                    key=lambda e: list(e.absolute_path))
+    if errors:
+        error = errors[0]
+        if error.validator == "additionalProperties":
+            unknown = sorted(set(data) - set(rules["properties"]))
+            raise PresetError(f"{source}: unknown setting(s) {', '.join(unknown)}; known: "
+                              f"{', '.join(rules['properties'])}")
+        field = ".".join(str(p) for p in error.absolute_path)
+        where = f"{source}: setting '{field}':" if field else f"{source}:"
+        raise PresetError(f"{where} {error.message}")
+    for name, value in data.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise PresetError(f"{source}: setting '{name}' must be a finite number, got {value}")
 
 
 def preset_from_mapping(data: dict[str, Any], source: str) -> Preset:
-    """Validate a mapping into a Preset; every error names the source and the field."""
-    known = {f.name: f for f in fields(Preset)}
-    unknown = sorted(set(data) - set(known))
-    if unknown:
-        raise PresetError(f"{source}: unknown setting(s) {', '.join(unknown)}; "
-                          f"known: {', '.join(known)}")
-    missing = [name for name in known if name not in data]
-    if missing:
-        raise PresetError(f"{source}: missing setting(s) {', '.join(missing)}")
-    values: dict[str, Any] = {}
-    for name, spec in known.items():
-        values[name] = _validate(source, name, data[name], spec.type, spec.metadata)
+    """A complete, validated Preset from a mapping; every error names the source and field."""
+    _check(data, source, complete=True)
+    known = {f.name for f in fields(Preset)}
+    values = {"description": ""} | {k: v for k, v in data.items() if k in known}
+    for f in fields(Preset):
+        if f.type in ("float", float):
+            values[f.name] = float(values[f.name])
     return Preset(**values)
-
-
-def _validate(source: str, name: str, value: Any, kind: Any, rules: dict[str, Any]) -> Any:
-    where = f"{source}: setting '{name}'"
-    if kind in ("int", int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise PresetError(f"{where} must be an integer, got {value!r}")
-    elif kind in ("float", float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise PresetError(f"{where} must be a number, got {value!r}")
-        value = float(value)
-    elif not isinstance(value, str):
-        raise PresetError(f"{where} must be text, got {value!r}")
-    if "min" in rules and value < rules["min"]:
-        raise PresetError(f"{where} must be at least {rules['min']}, got {value!r}")
-    if "max" in rules and value > rules["max"]:
-        raise PresetError(f"{where} must be at most {rules['max']}, got {value!r}")
-    if rules.get("even") and value % 2:
-        raise PresetError(f"{where} must be even (yuv420p needs even sizes), got {value!r}")
-    if "choices" in rules and value not in rules["choices"]:
-        raise PresetError(f"{where} must be one of {', '.join(rules['choices'])}, got {value!r}")
-    return value
 
 
 def builtin_names() -> list[str]:
@@ -110,14 +107,17 @@ def builtin_names() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
-def load_preset(name_or_path: str) -> Preset:
-    """A shipped preset by name, or a TOML file by path."""
+def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
+          ) -> tuple[dict[str, Any], str]:
+    """The settings of a preset file with its bases applied (not yet complete-checked)."""
     path = Path(name_or_path)
+    if relative_to is not None and not path.is_absolute():
+        path = relative_to / path
     if path.suffix == ".toml" or path.exists():
         if not path.is_file():
             raise PresetError(f"{path}: preset file not found")
         text = path.read_text(encoding="utf-8")
-        source = str(path)
+        source, stem, folder = str(path), path.stem, path.parent
     else:
         resource = resources.files(__name__) / f"{name_or_path}.toml"
         if not resource.is_file():
@@ -125,13 +125,34 @@ def load_preset(name_or_path: str) -> Preset:
             raise PresetError(f"unknown preset {name_or_path!r}; shipped presets: {shipped}, "
                               "or give a path to a .toml file")
         text = resource.read_text(encoding="utf-8")
-        source = f"preset {name_or_path!r}"
+        source, stem, folder = f"preset {name_or_path!r}", name_or_path, None
+    if source in chain:
+        raise PresetError(f"{source}: 'base' loops back to itself ({' -> '.join(chain)})")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise PresetError(f"{source}: not valid TOML ({error})") from error
-    data.setdefault("name", path.stem if path.suffix == ".toml" else name_or_path)
-    return preset_from_mapping(data, source)
+    _check(data, source, complete=False)
+    data.setdefault("name", stem)
+    base = data.pop("base", None)
+    if base is None:
+        return data, source
+    data.setdefault("description", f"{base} with changes")  # not the base's own words
+    base_data, _ = _read(base, folder, (*chain, source))
+    return base_data | data, source
+
+
+def load_preset(name_or_path: str) -> Preset:
+    """A shipped preset by name, or a TOML file by path, checked against ffmpeg."""
+    from kbbatch.encode import EncoderError, check_encoder
+
+    data, source = _read(name_or_path, None, ())
+    preset = preset_from_mapping(data, source)
+    try:
+        check_encoder(preset)
+    except EncoderError as error:
+        raise PresetError(f"{source}: setting '{error.field}': {error}") from error
+    return preset
 
 
 def with_overrides(preset: Preset, **overrides: Any) -> Preset:
