@@ -14,7 +14,14 @@ from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.planners import PLANNER_NAMES
-from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
+from kbbatch.presets import (
+    Preset,
+    PresetError,
+    builtin_names,
+    load_preset,
+    setting_docs,
+    with_overrides,
+)
 
 
 class DefaultCommandGroup(click.Group):
@@ -228,12 +235,15 @@ def _print_summary(report: RunReport) -> None:
 
 @main.command()
 def presets() -> None:
-    """List the shipped presets with their settings."""
+    """List the shipped presets with their settings, and what each setting means."""
     names = [f.name for f in fields(Preset) if f.name not in ("name", "description")]
     for preset_name in builtin_names():
         preset = load_preset(preset_name)
         click.echo(f"{preset.name}: {preset.description}")
         click.echo("  " + ", ".join(f"{n}={getattr(preset, n)}" for n in names))
+    click.echo("\nsettings of a preset file (a path works wherever a name does):")
+    for name, meaning in setting_docs().items():
+        click.echo(f"  {name:<15} {meaning}")
 
 
 @main.group()

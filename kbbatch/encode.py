@@ -156,23 +156,19 @@ class VideoInfo:
 
 
 def probe(path: Path) -> VideoInfo:
-    """Stream facts from ffmpeg's own report (the wheel ships no ffprobe)."""
-    result = subprocess.run(
-        [ffmpeg_exe(), "-hide_banner", "-i", str(path)], capture_output=True, text=True
-    )
-    report = result.stderr
-    video = re.search(r"Video: (\w+).*?, (\d+)x(\d+).*?, ([\d.]+) fps", report)
-    duration = re.search(r"Duration: (\d+):(\d+):([\d.]+)", report)
-    if not video or not duration:
-        raise EncodeError(f"{path}: ffmpeg found no video stream ({report.strip()[-300:]})")
-    hours, minutes, seconds = duration.groups()
-    return VideoInfo(
-        width_px=int(video.group(2)),
-        height_px=int(video.group(3)),
-        fps=float(video.group(4)),
-        duration_s=int(hours) * 3600 + int(minutes) * 60 + float(seconds),
-        codec=video.group(1),
-    )
+    """Stream facts, as imageio-ffmpeg reads them (the wheel ships no ffprobe)."""
+    import imageio_ffmpeg
+
+    try:
+        reader = imageio_ffmpeg.read_frames(str(path))
+        meta = next(reader)
+        reader.close()
+    except (OSError, RuntimeError, StopIteration) as error:
+        reason = (str(error).strip().splitlines() or ["no metadata"])[-1]
+        raise EncodeError(f"{path}: ffmpeg found no video stream ({reason})") from error
+    width_px, height_px = meta["size"]
+    return VideoInfo(width_px=width_px, height_px=height_px, fps=float(meta["fps"]),
+                     duration_s=float(meta["duration"]), codec=meta["codec"])
 
 
 def decode_frames(path: Path, width_px: int, height_px: int) -> Iterator[np.ndarray]:

@@ -12,13 +12,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from kbbatch.camera import Crop, Plan
+from kbbatch.camera import ASPECT_TOLERANCE, Crop, Plan
 
 FLAT_PLANNER = "2d"
 """The one planner an entry with crops may name: its crops, rendered without parallax."""
 
-ASPECT_TOLERANCE = 0.02
-"""A crop's height may differ from the output aspect's by this fraction (rounding)."""
 
 
 class ManifestError(ValueError):

@@ -76,6 +76,20 @@ def test_errors_name_the_file_and_the_setting(tmp_path, line, message):
         load_preset(path)
 
 
+def test_reference_preset_is_the_papers_automatic_clip():
+    reference = load_preset("reference")  # section 3.4: 75 linear steps at 25 fps
+    assert (reference.frames_forward, reference.fps, reference.easing) == (75, 25, "linear")
+    assert (reference.zoom, reference.max_shift_px) == (1.25, 100)
+
+
+def test_presets_command_lists_every_preset_and_setting():
+    output = CliRunner().invoke(main, ["presets"]).output
+    for name in builtin_names():
+        assert f"\n{name}: " in f"\n{output}"
+    for setting in schema()["properties"]:
+        assert f"  {setting} " in output
+
+
 def test_schema_easings_are_the_cameras():
     from kbbatch.camera import EASINGS
 

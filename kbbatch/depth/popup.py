@@ -12,6 +12,7 @@ import numpy as np
 
 from kbbatch.depth import DepthResult, SceneContext
 from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
+from kbbatch.segment import SALIENT_THRESHOLD
 
 HORIZON_RANGE = (0.15, 0.8)
 """The estimated horizon is kept within these fractions of the height, from the top."""
@@ -68,7 +69,7 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     saliency = context.saliency
     if saliency is None:
         return []
-    binary = (saliency > 0.5).astype(np.uint8)
+    binary = (saliency > SALIENT_THRESHOLD).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
     return [(labels == k, True) for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
