@@ -23,6 +23,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+from kbbatch import models
 from kbbatch.batch import (
     ClipOptions,
     ClipResult,
@@ -64,8 +65,9 @@ def is_candidate(path: Path) -> bool:
     return is_image_file(path) and not name.endswith(TEMPORARY_SUFFIXES)
 
 
-def _worker_init() -> None:
+def _worker_init(jobs: int = 1) -> None:
     """Workers leave signals to the daemon and die with it (no orphan finishing a clip)."""
+    models.share_cores(jobs)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # Not on Linux: a killed daemon's worker may finish its clip; recovery copes with that.
@@ -121,7 +123,8 @@ class Daemon:
         options = replace(s.options, threads=threads)
         log.info("watching %s -> %s (preset %s, %d job(s), %s)", s.inbox, s.outbox,
                  s.preset.name, s.jobs, "polling" if s.poll else "inotify")
-        with ProcessPoolExecutor(max_workers=s.jobs, initializer=_worker_init) as pool:
+        with ProcessPoolExecutor(max_workers=s.jobs, initializer=_worker_init,
+                                 initargs=(s.jobs,)) as pool:
             while not self.stopping.is_set():
                 self.collect_events()
                 self.submit_ready(pool, options)

@@ -12,6 +12,7 @@ import numpy as np
 
 from kbbatch.depth import DepthResult, SceneContext
 from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
+from kbbatch.segment import SALIENT_THRESHOLD
 
 HORIZON_RANGE = (0.15, 0.8)
 """The estimated horizon is kept within these fractions of the height, from the top."""
@@ -62,13 +63,13 @@ def estimate_horizon(image: np.ndarray, contacts: list[float]) -> float:
 
 def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     """(mask, grounded) of every object to pop up: instances, else salient-mask components."""
-    instances = context.instances()
+    instances = context.instances
     if instances:
         return [(i.mask, i.class_name not in GROUNDED_EXCEPTIONS) for i in instances]
-    saliency = context.saliency()
+    saliency = context.saliency
     if saliency is None:
         return []
-    binary = (saliency > 0.5).astype(np.uint8)
+    binary = (saliency > SALIENT_THRESHOLD).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
     return [(labels == k, True) for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
