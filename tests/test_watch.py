@@ -40,11 +40,12 @@ encoder_preset = "ultrafast"
     return path
 
 
-def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str) -> subprocess.Popen:
+def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str,
+                 log_path: Path | None = None) -> subprocess.Popen:
     command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
                "--preset", str(preset), "--settle", "1", "--depth", "ramp", "--planner",
                "center", *extra]
-    log = open(outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
+    log = open(log_path or outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
 
 
