@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -76,6 +77,9 @@ def is_candidate(path: Path) -> bool:
 REWRITE_GRACE_S = 10.0
 """A photo that fails while it was modified this recently (at least 5 settle times) is not filed
 away yet: a writer that paused longer than the settle time may still finish it."""
+
+WORKER_DEATHS_TO_FAIL = 2
+"""A photo whose worker process dies this often (while it runs alone) fails; others are retried."""
 
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
@@ -170,6 +174,8 @@ class Daemon:
         self.keep_sources = settings.keep_sources
         self.failure_reports = settings.inbox / FAILED_FOLDER
         self.mentioned: set[Path] = set()  # subfolders and broken links already logged
+        self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
+        self.pool: ProcessPoolExecutor | None = None
 
     # --- lifecycle -------------------------------------------------------------------------
     def request_stop(self, *_: object) -> None:
@@ -207,11 +213,12 @@ class Daemon:
         options = replace(s.options, threads=threads)
         log.info("watching %s -> %s (preset %s, %d job(s), %s)", s.inbox, s.outbox,
                  s.preset.name, s.jobs, "polling" if s.poll else "inotify")
-        with ProcessPoolExecutor(max_workers=s.jobs, initializer=_worker_init) as pool:
+        self.pool = self.new_pool()
+        try:
             while not self.stopping.is_set() or self.in_flight:
                 try:
                     self.collect_events()
-                    self.submit_ready(pool, options)
+                    self.submit_ready(options)
                     self.finish_completed()
                     self.file_suspects()
                 except JournalError as error:
@@ -219,6 +226,8 @@ class Daemon:
                               JOURNAL_RETRY_S)
                     self.stopping.wait(JOURNAL_RETRY_S)
                 time.sleep(LOOP_INTERVAL_S)
+        finally:
+            self.pool.shutdown(wait=True)
         # watchdog's inotify thread, stopped while it waits for an event, logs a spurious
         # "queue_events() called when the thread is inactive" error; nothing is wrong then.
         logging.getLogger("watchdog.observers.inotify").setLevel(logging.CRITICAL)
@@ -316,11 +325,18 @@ class Daemon:
             return False
         return renamed or time.monotonic() - since >= self.settings.settle_s
 
-    def submit_ready(self, pool: ProcessPoolExecutor, options: ClipOptions) -> None:
+    def new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=self.settings.jobs, initializer=_worker_init)
+
+    def submit_ready(self, options: ClipOptions) -> None:
         s = self.settings
         busy = {job.path for job in self.in_flight.values()} | set(self.suspects)
-        for path in sorted(self.pending):
+        for path in sorted(self.pending, key=lambda p: (p not in self.worker_deaths, p)):
             if len(self.in_flight) >= s.jobs or self.stopping.is_set():
+                return
+            if any(job.path in self.worker_deaths for job in self.in_flight.values()):
+                return  # a photo whose worker died runs alone, so a second death is its own
+            if path in self.worker_deaths and self.in_flight:
                 return
             if path in busy or not self.is_ready(path):
                 continue
@@ -350,7 +366,12 @@ class Daemon:
                 log.warning("%s: %s already holds a clip of another photo; this one is named "
                             "by its content: %s", path.name, preferred, name)
             log.info("start %s", path.name)
-            future = pool.submit(_render, path, output, s.preset, options, entry)
+            try:
+                future = self.pool.submit(_render, path, output, s.preset, options, entry)
+            except BrokenProcessPool:  # broke since the last look: its jobs come back below
+                self.journal.finish(path, "queued", 0.0, "worker pool broken; retrying")
+                self.events.put((path, True))
+                return
             self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed)
 
     def preferred_name(self, source: Path) -> str:
@@ -361,11 +382,14 @@ class Daemon:
         return output_names([source, *siblings])[source]
 
     def finish_completed(self) -> None:
+        if any(f.done() and isinstance(f.exception(), BrokenProcessPool)
+               for f in self.in_flight):
+            self.recover_from_worker_death()
         for future in [f for f in self.in_flight if f.done()]:
             job = self.in_flight[future]
             try:
                 result = future.result()
-            except Exception as error:  # the worker itself died
+            except Exception as error:  # the call itself failed (not the photo's pipeline)
                 result = ClipResult(str(job.path), None, "failed", 0.0,
                                     error=f"{job.path}: worker failed: {error}")
             if self.changed_since_taken(job):
@@ -376,6 +400,7 @@ class Daemon:
                             "taken again once it settles", job.path.name)
                 self.events.put((job.path, False))
                 continue
+            self.worker_deaths.pop(job.path, None)
             clip = None
             if result.status == "done":
                 with contextlib.suppress(OSError):
@@ -394,6 +419,36 @@ class Daemon:
                          "if it stays unchanged that long", job.path.name, grace)
             else:
                 self.file_failure(job.path, result)
+
+    def recover_from_worker_death(self) -> None:
+        """A worker process died (out of memory, killed): the pool is broken and every photo in
+        flight lost its result. Rebuild the pool and take them again; a photo that was alone in
+        flight when its worker died twice is the cause, and fails saying so."""
+        jobs = list(self.in_flight.values())
+        self.in_flight.clear()
+        self.pool.shutdown(wait=True, cancel_futures=True)  # the broken pool's workers end
+        self.pool = self.new_pool()
+        for partial in remove_partial_clips(self.settings.outbox):  # none of them is alive now
+            log.info("removed partial file %s of the dead worker", partial.name)
+        remove_stale_scratch()
+        for job in jobs:
+            alone = len(jobs) == 1
+            deaths = self.worker_deaths.get(job.path, 0) + 1 if alone else max(
+                self.worker_deaths.get(job.path, 0), 1)
+            self.worker_deaths[job.path] = deaths
+            if deaths >= WORKER_DEATHS_TO_FAIL:
+                del self.worker_deaths[job.path]
+                error = (f"{job.path}: its worker process died {deaths} times while rendering "
+                         "it (out of memory, or killed); the photo is set aside")
+                self.journal.finish(job.path, "failed", 0.0, error)
+                self.file_failure(job.path, ClipResult(str(job.path), None, "failed", 0.0,
+                                                       error=error))
+                continue
+            self.journal.finish(job.path, "queued", 0.0, "worker process died; retrying")
+            log.warning("%s: the worker process rendering it died (out of memory, or killed); "
+                        "pool rebuilt, taking it again%s", job.path.name,
+                        "" if alone else " alone")
+            self.events.put((job.path, True))
 
     def changed_since_taken(self, job: InFlight) -> bool:
         try:

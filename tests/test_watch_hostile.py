@@ -194,3 +194,63 @@ def test_sigterm_logs_no_error(tmp_path):
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(timeout=60) == 0
     assert "ERROR" not in daemon_log(tmp_path), daemon_log(tmp_path)
+
+
+def worker_pids(daemon: subprocess.Popen) -> list[int]:
+    """The daemon's worker processes (its children)."""
+    children = Path(f"/proc/{daemon.pid}/task/{daemon.pid}/children")
+    return [int(pid) for pid in children.read_text().split()] if children.exists() else []
+
+
+def kill_worker_mid_clip(daemon: subprocess.Popen, outbox: Path) -> None:
+    wait_for(lambda: list(outbox.glob(".*.part*")) and worker_pids(daemon), 180,
+             "a clip being encoded")
+    for pid in worker_pids(daemon):
+        os.kill(pid, signal.SIGKILL)
+
+
+def test_a_killed_worker_is_replaced_and_its_photo_retried(tmp_path):
+    """Issue 13, item 3: the daemon survives its workers."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 6.0, fps=25.0)  # long enough to be caught mid-encode
+    drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        kill_worker_mid_clip(daemon, outbox)
+        wait_for(lambda: finished_jobs(outbox) == 1, 300, "the retried clip")
+        assert daemon.poll() is None, "the daemon died with its worker"
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4"]
+    assert (inbox / "done" / "a.jpg").is_file() and not (inbox / "failed").exists()
+    assert "worker process rendering it died" in daemon_log(tmp_path)
+    journal = Journal(outbox)
+    try:
+        assert journal.get(inbox / "done" / "a.jpg").state == "done"
+    finally:
+        journal.close()
+
+
+def test_a_photo_that_kills_its_worker_twice_fails_and_the_daemon_goes_on(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 6.0, fps=25.0)
+    drop(inbox, "killer.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        kill_worker_mid_clip(daemon, outbox)
+        wait_for(lambda: "taking it again" in daemon_log(tmp_path), 120, "the retry")
+        kill_worker_mid_clip(daemon, outbox)
+        wait_for(lambda: (inbox / "failed" / "killer.jpg.error.json").is_file(), 120,
+                 "the failure report")
+        report = (inbox / "failed" / "killer.jpg.error.json").read_text()
+        assert "died 2 times" in report
+        drop(inbox, "after.jpg", photo_bytes(tmp_path, 2))
+        wait_for(lambda: (outbox / "after.mp4").is_file(), 300, "a photo after the failure")
+        assert daemon.poll() is None
+    finally:
+        assert stop(daemon) == 0
+    assert not list(outbox.glob(".*part*"))
