@@ -254,12 +254,11 @@ def render_clip_frames(
 
 def progress_bar(iterable: Iterable | None = None, **options) -> tqdm | LogProgress:
     """A tqdm bar on a terminal; into a log or a pipe, plain lines now and then instead (no 0 %
-    line, no carriage returns or escape codes), and none at all for the per-clip frame bars."""
+    line, no carriage returns or escape codes)."""
     if sys.stderr.isatty():
         return tqdm(iterable, **options)
-    return LogProgress(iterable, options.get("total"), options.get("desc", ""),
-                       options.get("unit", "it"),
-                       options.get("disable", False) or options.get("leave") is False)
+    return LogProgress(iterable, options.get("total"), options.get("desc", "").strip(),
+                       options.get("unit", "it"), options.get("disable", False))
 
 
 class LogProgress:
@@ -536,6 +535,7 @@ def run_folder(
     from kbbatch.images import scan_folder
     from kbbatch.journal import FolderLock, Journal, JournalError
 
+    remove_stale_scratch()
     output_folder = output_folder.absolute()
     scan = scan_folder(folder, ignore=(output_folder.name,)
                        if output_folder.parent == folder.absolute() else ())
@@ -544,7 +544,6 @@ def run_folder(
         raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}); nothing was written")
     check_writable(output_folder)
     lock = FolderLock(output_folder, "writing clips into")
-    remove_stale_scratch()
     results: list[ClipResult] = []
     notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
              for sub in scan.subfolders]
