@@ -11,7 +11,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -24,6 +23,7 @@ from kbbatch.images import ImageReadError, read_image
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
 
 from .conftest import textured_image
+from .test_watch import wait_for
 
 FAST = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=2)
 CLI = [sys.executable, "-m", "kbbatch"]
@@ -39,15 +39,6 @@ def photo(path: Path, seed: int, height: int = 180, width: int = 320) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(textured_image(height, width, seed=seed)).save(path)
     return path
-
-
-def wait_for(condition, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
 @pytest.fixture
