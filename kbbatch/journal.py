@@ -71,13 +71,28 @@ def settings_fingerprint(*parts: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+LOW_SPACE_BYTES = 1 << 20
+"""Below this much free space, a journal error says how full the disk is."""
+
+
+def free_space_note(folder: Path) -> str:
+    import shutil
+
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return ""
+    return f"; the disk is full ({free // 1024} KB free)" if free < LOW_SPACE_BYTES else ""
+
+
 def _guarded(method):
     """Turn SQLite's errors into a JournalError that names the journal and the reason."""
     def wrapper(self, *args, **kwargs):
         try:
             return method(self, *args, **kwargs)
         except sqlite3.Error as error:
-            raise JournalError(f"{self.path}: job journal cannot be written ({error})") from error
+            raise JournalError(f"{self.path}: job journal cannot be written ({error})"
+                               f"{free_space_note(self.path.parent)}") from error
     wrapper.__doc__ = method.__doc__
     return wrapper
 
