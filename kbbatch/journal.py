@@ -189,8 +189,10 @@ class Journal:
     def _is_free(self, name: str, source: Path, content: str, folder: Path) -> bool:
         owners = sorted(self.owners(name), key=lambda job: job.updated)
         latest = owners[-1] if owners else None
-        if latest is not None and (latest.source == str(source) or latest.content == content):
-            return True  # this photo's own clip (re-rendered, or the folder was moved)
+        if latest is not None and (latest.source == str(source) or latest.content == content
+                                   or latest.source == Path(source).name):
+            return True  # this photo's own clip (re-rendered, the folder moved, or a journal
+            # of an earlier version, which keyed jobs by file name)
         if (folder / name).exists():
             return False  # another photo's clip, or a file kbbatch did not write
         return latest is None or latest.state != "running"

@@ -329,3 +329,24 @@ def test_default_jobs_follows_cores_and_memory(monkeypatch, cores, memory_gib, j
 def test_watch_help_states_the_jobs_default():
     run = subprocess.run([*CLI, "watch", "--help"], capture_output=True, text=True, check=True)
     assert f"(here: {default_jobs()})" in " ".join(run.stdout.split())
+
+
+def test_a_journal_of_the_earlier_version_keeps_its_clip_names(tmp_path, quick_preset):
+    """Journals keyed by file name (before issue 14) still own their clips: no duplicates."""
+    import sqlite3
+
+    path = photo(tmp_path / "in" / "a.jpg", seed=1)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.mp4").write_bytes(b"clip of an earlier version")
+    legacy = sqlite3.connect(out / ".kbbatch-journal.sqlite")
+    legacy.execute("CREATE TABLE jobs (source TEXT PRIMARY KEY, fingerprint TEXT NOT NULL,"
+                   " settings TEXT NOT NULL, state TEXT NOT NULL, output TEXT, error TEXT,"
+                   " attempts INTEGER NOT NULL DEFAULT 0, seconds REAL, updated REAL NOT NULL)")
+    legacy.execute("INSERT INTO jobs VALUES ('a.jpg', ?, 'x', 'done', 'a.mp4', NULL, 1, 1.0, 1.0)",
+                   (f"{path.stat().st_size}:{path.stat().st_mtime_ns}",))
+    legacy.commit()
+    legacy.close()
+    report = run_folder(tmp_path / "in", out, quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["done"]
+    assert visible_clips(out) == ["a.mp4"] and (out / "a.mp4").stat().st_size > 1000
