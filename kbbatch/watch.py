@@ -426,7 +426,12 @@ class Daemon:
         flight when its worker died twice is the cause, and fails saying so."""
         jobs = list(self.in_flight.values())
         self.in_flight.clear()
-        self.pool.shutdown(wait=True, cancel_futures=True)  # the broken pool's workers end
+        # Workers ignore SIGTERM (signals are the daemon's), so the broken pool's own clean-up
+        # would wait for the survivors' clips, whose results are lost anyway: end them now.
+        for process in list((getattr(self.pool, "_processes", None) or {}).values()):
+            with contextlib.suppress(OSError):
+                process.kill()
+        self.pool.shutdown(wait=True, cancel_futures=True)
         self.pool = self.new_pool()
         for partial in remove_partial_clips(self.settings.outbox):  # none of them is alive now
             log.info("removed partial file %s of the dead worker", partial.name)

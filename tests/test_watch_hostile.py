@@ -254,3 +254,22 @@ def test_a_photo_that_kills_its_worker_twice_fails_and_the_daemon_goes_on(tmp_pa
     finally:
         assert stop(daemon) == 0
     assert not list(outbox.glob(".*part*"))
+
+
+def test_photos_in_flight_beside_a_dead_worker_are_not_blamed(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 6.0, fps=25.0)
+    for seed, name in ((1, "a.jpg"), (2, "b.jpg")):
+        drop(inbox, name, photo_bytes(tmp_path, seed))
+    daemon = start_daemon(inbox, outbox, preset, "--jobs", "2")
+    try:
+        wait_for(lambda: len(list(outbox.glob(".*.part*"))) == 2
+                 and len(worker_pids(daemon)) == 2, 180, "two clips being encoded")
+        os.kill(worker_pids(daemon)[0], signal.SIGKILL)  # one worker only
+        wait_for(lambda: finished_jobs(outbox) == 2, 400, "both clips")
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4", "b.mp4"]
+    assert not (inbox / "failed").exists(), "an innocent photo was filed as failed"
