@@ -10,8 +10,19 @@ import click
 
 from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
-from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder, run_folder
+from kbbatch.batch import (
+    CORES_PER_JOB,
+    MEMORY_PER_JOB_GIB,
+    ClipOptions,
+    EmptyFolderError,
+    OutputFolderError,
+    RunReport,
+    default_jobs,
+    plan_folder,
+    run_folder,
+)
 from kbbatch.depth import DepthOptions
+from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.planners import PLANNER_NAMES
 from kbbatch.presets import (
@@ -22,6 +33,12 @@ from kbbatch.presets import (
     setting_docs,
     with_overrides,
 )
+
+EXIT_NOTHING_TO_DO = 3
+"""Exit status of a batch over a folder without photos (0: all made, 1: some failed)."""
+
+EXIT_INTERRUPTED = 130
+"""Exit status of a batch stopped by Ctrl-C or SIGTERM before it was through."""
 
 
 class DefaultCommandGroup(click.Group):
@@ -127,9 +144,19 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
     try:
         report = run_folder(folder, output, preset, options, show_progress=not quiet,
                             manifest=manifest, force=force, fail_fast=fail_fast)
-    except OutputFolderError as error:
+    except (OutputFolderError, FolderBusyError) as error:
         raise click.ClickException(str(error)) from error
+    except EmptyFolderError as error:
+        click.echo(f"Error: {error}", err=True)
+        sys.exit(EXIT_NOTHING_TO_DO)
+    except KeyboardInterrupt:
+        click.echo("\ninterrupted: no partial clip is left; run again to finish", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     _print_summary(report)
+    if report.stopped_by:
+        click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
+                   "finish", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     sys.exit(1 if report.failed else 0)
 
 
@@ -227,10 +254,13 @@ def _print_summary(report: RunReport) -> None:
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")
+    for result in report.results:
+        if result.note:
+            click.echo(f"NOTE {result.note}", err=True)
+    for note in report.notes:
+        click.echo(f"NOTE {note}", err=True)
     for result in report.failed:
         click.echo(f"FAILED {result.error}", err=True)
-    if not report.results:
-        click.echo("no photos found (jpg, jpeg, png, webp, tif, tiff, bmp)", err=True)
 
 
 @main.command()
@@ -288,13 +318,15 @@ def models_pull(name: str, sha256: str | None) -> None:
 @scene_options
 @manifest_option
 @save_depth_option
-@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Photos processed in parallel (processes).")
+@click.option("--jobs", type=click.IntRange(min=1), default=None,
+              help="Photos processed in parallel (worker processes). Default: one per "
+              f"{CORES_PER_JOB} cores and per {MEMORY_PER_JOB_GIB} GiB of memory, at least 1 "
+              f"(here: {default_jobs()}); each worker renders with cores/jobs threads.")
 @click.option("--poll", is_flag=True, help="Poll the folder instead of inotify (network shares).")
 @click.option("--settle", "settle_s", type=float, default=2.0, show_default=True,
               help="Seconds a photo's size and time must stay unchanged before it is taken.")
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
-def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: bool, jobs: int,
+def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: bool, jobs: int | None,
           poll: bool, settle_s: float, keep_sources: bool, **shared) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
     import logging
@@ -306,10 +338,10 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     preset = _preset(shared)
     options = _clip_options(shared, save_depth=save_depth)
     settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
-                             jobs, poll, settle_s, keep_sources)
+                             jobs or default_jobs(), poll, settle_s, keep_sources)
     try:
         sys.exit(run_daemon(settings))
-    except OutputFolderError as error:
+    except (OutputFolderError, FolderBusyError, JournalError) as error:
         raise click.ClickException(str(error)) from error
 
 

@@ -106,7 +106,7 @@ def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, 
     import sys
     import tempfile
 
-    from kbbatch.batch import SCRATCH_PREFIX, ClipOptions, run_folder
+    from kbbatch.batch import SCRATCH_PREFIX, ClipOptions, EmptyFolderError, run_folder
     from kbbatch.presets import load_preset
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
@@ -119,7 +119,8 @@ def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, 
         folder.mkdir()
         (folder / "frames.npy").write_bytes(b"\0" * 1024)
     (tmp_path / "photos").mkdir()
-    run_folder(tmp_path / "photos", tmp_path / "out", load_preset("preview"),
-               ClipOptions(threads=1), show_progress=False)
+    with pytest.raises(EmptyFolderError):  # the clean-up comes first, even with no photos
+        run_folder(tmp_path / "photos", tmp_path / "out", load_preset("preview"),
+                   ClipOptions(threads=1), show_progress=False)
     assert not stale.exists(), "a dead process's frame store must be removed"
     assert live.exists(), "a running process's frame store must be kept"
