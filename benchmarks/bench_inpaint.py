@@ -133,7 +133,9 @@ def view_rows() -> None:
         cloud = back_project(left, depth, left_view, keep=valid)
         raw = render(cloud, right_view, focal)
         seen = np.ones((height, width), bool)
-        seen[:, : int(np.ceil(disparity[valid].max()))] = False  # outside the left camera's view
+        # The right camera sits to the right, so a point moves left by its disparity: the
+        # right view's last columns (as wide as the largest disparity) are outside the left's.
+        seen[:, width - int(np.ceil(disparity[valid].max())):] = False
         disoccluded = ~raw.covered & seen
         outputs = {"no fill": to_uint8(raw.colour)}
         outputs["telea"] = cv2.inpaint(outputs["no fill"], (~raw.covered).astype(np.uint8) * 255,
