@@ -261,7 +261,13 @@ def group_cards(masks: list[np.ndarray], disparities: list[float]
     cards = []
     for mask, reach, value in groups.values():
         # The gaps between members (closed, and within reach of two of them) join the group.
-        closed = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, gap_kernel) > 0
+        # Beyond the frame the masks continue as they reach it (replicated), no further.
+        pad = 2 * GROUP_TOUCH_PX + 1
+        padded = cv2.copyMakeBorder(mask.astype(np.uint8), pad, pad, pad, pad,
+                                    cv2.BORDER_REPLICATE)
+        closed = cv2.morphologyEx(padded, cv2.MORPH_CLOSE, gap_kernel,
+                                  borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        closed = closed[pad:-pad, pad:-pad] > 0
         cards.append((mask | (closed & (reach >= 2)), value))
     return cards
 
