@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
 import sys
@@ -36,6 +37,8 @@ from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
 from kbbatch.render import PointCloud, render_frame
+from kbbatch.risk import Risk, relieved
+from kbbatch.risk import assess as assess_risk
 from planners import PlanRequest, get_planner
 
 MAX_POINT_SPACING_PX = 1.8
@@ -53,6 +56,8 @@ SCRATCH_PREFIX = "kbbatch-frames-"
 """Temporary frame stores are named with this and their process id."""
 
 CLIP_SUFFIX = ".mp4"
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,7 @@ class ClipResult:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     frames: int = 0
     detail: str | None = None  # traceback of an unexpected failure
+    risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
 
 
 @dataclass(frozen=True)
@@ -87,6 +93,7 @@ class PreparedScene:
     cloud: PointCloud
     depth_backend: str
     disparity: np.ndarray  # relative, at the working size
+    risk: Risk | None = None
 
 
 def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
@@ -126,6 +133,12 @@ def prepare_scene(
     if not plan.parallax:
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))
+    risk = assess_risk(working, depth, plan, scene)
+    if risk.relief < 1.0:  # do no harm: less parallax rather than a broken-looking clip
+        log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
+                    round(100 * risk.relief), "; ".join(risk.reasons))
+        depth = relieved(depth, risk.relief)
+        scene = SceneGeometry(width, height, nearest_depth(depth))
     timings["plan"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -136,7 +149,7 @@ def prepare_scene(
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
-                         depth_result.disparity)
+                         depth_result.disparity, risk)
 
 
 def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions
@@ -325,6 +338,7 @@ def make_clip(
                               preset.easing)
         prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
+        result.risk = prepared.risk.summary() if prepared.risk else None
         if options.save_depth:
             save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)

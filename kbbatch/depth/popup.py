@@ -12,7 +12,7 @@ import numpy as np
 
 from kbbatch.depth import DepthResult, SceneContext
 from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
-from kbbatch.segment import group_cards
+from kbbatch.segment import clean_mask, group_cards
 
 HORIZON_RANGE = (0.15, 0.8)
 """The estimated horizon is kept within these fractions of the height, from the top."""
@@ -72,7 +72,9 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     binary = (saliency > 0.5).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
-    return [(labels == k, True) for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
+    cards = [clean_mask(labels == k) for k in range(1, count)
+             if stats[k, cv2.CC_STAT_AREA] >= minimum]
+    return [(card, True) for card in cards if card.sum() >= minimum]
 
 
 def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> np.ndarray:
