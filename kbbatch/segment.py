@@ -70,8 +70,8 @@ no cleaning removes and no other card takes."""
 
 GROUP_TOUCH_PX = 12
 """Cards whose masks come within twice this distance (working px) touch: overlapping people, or
-people with a sliver of background between them, which joins their group card rather than
-float between them as a shard."""
+people with a sliver of background between them (a row or column gap up to twice this), which
+joins their group card rather than float between them as a shard."""
 
 GROUP_DISPARITY_TOLERANCE = 0.15
 """Touching cards whose disparities differ by at most this fraction become one group card."""
@@ -251,25 +251,31 @@ def group_cards(masks: list[np.ndarray], disparities: list[float]
             similar = abs(disparities[a] - disparities[b]) <= GROUP_DISPARITY_TOLERANCE * near
             if similar and (grown[a] & grown[b]).any():
                 parent[root(a)] = root(b)
-    groups: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
-    gap_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (4 * GROUP_TOUCH_PX + 1,) * 2)
+    members: dict[int, list[int]] = {}
     for k in range(count):
-        mask, reach, value = groups.get(
-            root(k), (np.zeros_like(masks[k], bool), np.zeros(masks[k].shape, np.uint8), -np.inf))
-        reach = reach + cv2.dilate(masks[k].astype(np.uint8), gap_kernel)
-        groups[root(k)] = (mask | masks[k], reach, max(value, disparities[k]))
+        members.setdefault(root(k), []).append(k)
     cards = []
-    for mask, reach, value in groups.values():
-        # The gaps between members (closed, and within reach of two of them) join the group.
-        # Beyond the frame the masks continue as they reach it (replicated), no further.
-        pad = 2 * GROUP_TOUCH_PX + 1
-        padded = cv2.copyMakeBorder(mask.astype(np.uint8), pad, pad, pad, pad,
-                                    cv2.BORDER_REPLICATE)
-        closed = cv2.morphologyEx(padded, cv2.MORPH_CLOSE, gap_kernel,
-                                  borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        closed = closed[pad:-pad, pad:-pad] > 0
-        cards.append((mask | (closed & (reach >= 2)), value))
+    for group in members.values():
+        owner = np.full(masks[group[0]].shape, -1, np.int32)
+        for k in group:
+            owner[masks[k] & (owner < 0)] = k
+        mask = (owner >= 0) | bridge_gaps(owner, 2 * GROUP_TOUCH_PX)
+        cards.append((mask, max(disparities[k] for k in group)))
     return cards
+
+
+def bridge_gaps(owner: np.ndarray, max_gap_px: int) -> np.ndarray:
+    """Pixels on a straight row or column run between two different members' pixels, at most
+    max_gap_px long: the background seen between people standing together."""
+    bridge = np.zeros(owner.shape, bool)
+    for grid, out in ((owner, bridge), (owner.T, bridge.T)):
+        rows, cols = np.nonzero(grid >= 0)
+        same_row = rows[1:] == rows[:-1]
+        gap = cols[1:] - cols[:-1] - 1
+        between = grid[rows[1:], cols[1:]] != grid[rows[:-1], cols[:-1]]
+        for k in np.nonzero(same_row & between & (gap > 0) & (gap <= max_gap_px))[0]:
+            out[rows[k], cols[k] + 1:cols[k + 1]] = True
+    return bridge
 
 
 def find_instances(image: np.ndarray) -> list[Instance]:
