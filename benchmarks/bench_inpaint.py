@@ -154,10 +154,12 @@ def view_rows() -> None:
                   + f"{100 * disoccluded.mean():>9.2f}")
     print("(KITTI's ground truth is sparse LiDAR: most of its 'disoccluded' pixels are simply "
           "unknown)")
-    for method, rows in totals.items():
-        means = np.mean(rows, axis=0)
-        print(f"{'mean':<30}{method:<12}{means[0]:>10.2f}{means[1]:>10.3f}{means[2]:>12.2f}"
-              f"{means[3]:>12.3f}")
+    dense = [k for k, folder in enumerate(VIEWS) if not folder.startswith("kitti")]
+    for label, picked in (("mean", slice(None)), ("mean, dense truth only", dense)):
+        for method, rows in totals.items():
+            means = np.mean(np.asarray(rows)[picked], axis=0)
+            print(f"{label:<30}{method:<12}{means[0]:>10.2f}{means[1]:>10.3f}{means[2]:>12.2f}"
+                  f"{means[3]:>12.3f}")
 
 
 def main() -> int:

@@ -46,7 +46,10 @@ PATCH_RADIUS_PX = 3
 """Exemplar fill: patches of (2r+1)^2 pixels are compared, at the working size."""
 
 SEARCH_RADIUS_PX = 40
-"""Exemplar fill: random source candidates are drawn within this distance of a hole pixel."""
+"""Exemplar fill: random source candidates are drawn within this distance of a hole pixel..."""
+
+SEARCH_SCALES = 3
+"""... and within 2x, 4x (up to 2^(n-1)x) that distance, in turn, for holes wider than it."""
 
 RANDOM_CANDIDATES = 24
 """Exemplar fill: random candidates per hole pixel, besides its neighbours' coherent ones."""
@@ -248,8 +251,9 @@ def _synthesise(colour, depth, source, rows, cols):
                     n += 1
         for j in range(RANDOM_CANDIDATES):
             h = _candidate_hash(y, x, j)
-            candidates[n, 0] = y + h % (2 * search + 1) - search
-            candidates[n, 1] = x + (h >> 11) % (2 * search + 1) - search
+            reach = search << (j % SEARCH_SCALES)  # near ones, and some far for wide holes
+            candidates[n, 0] = y + h % (2 * reach + 1) - reach
+            candidates[n, 1] = x + (h >> 11) % (2 * reach + 1) - reach
             n += 1
         best_y, best_x = -1, -1
         best_score = np.inf
