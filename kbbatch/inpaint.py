@@ -347,8 +347,13 @@ def extend_at_view(
     # A working-size pixel is a hole if any of its view pixels is, so that no source colour
     # or depth is averaged with empty pixels.
     uncovered = (~rendering.covered).astype(np.float32)
-    small_hole = cv2.resize(uncovered, small_size, interpolation=cv2.INTER_AREA) > 0
+    small_uncovered = cv2.resize(uncovered, small_size, interpolation=cv2.INTER_AREA) > 0
+    # Only the region is filled (no frame shows the rest); the rest is no source either.
+    small_region = cv2.resize(region.astype(np.uint8), small_size,
+                              interpolation=cv2.INTER_AREA) > 0
+    small_hole = small_uncovered & small_region
     small_depth = cv2.resize(rendering.depth, small_size, interpolation=cv2.INTER_NEAREST)
+    small_depth[small_uncovered & ~small_region] = np.inf
     small_colour = cv2.resize(rendering.colour, small_size, interpolation=cv2.INTER_AREA)
     blocked = near_side_of_holes(small_depth, small_hole)
     small_colour, small_depth = fill_background(small_colour, small_depth, small_hole, blocked)
