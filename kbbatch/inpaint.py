@@ -54,6 +54,9 @@ SEARCH_SCALES = 3
 RANDOM_CANDIDATES = 24
 """Exemplar fill: random candidates per hole pixel, besides its neighbours' coherent ones."""
 
+REFINE_SWEEPS = 2
+"""Exemplar fill: PatchMatch sweeps over the filled pixels after the onion-peel pass."""
+
 VOTE_RADIUS_PX = 2
 """Exemplar fill: the patches voting on a pixel's final colour lie within this radius."""
 
@@ -121,6 +124,10 @@ def fill_background(
     ring_rows, ring_cols = rows[order].astype(np.int64), cols[order].astype(np.int64)
     _grow_far_depth(filled_depth, source, ring_rows, ring_cols)
     offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols)
+    for sweep in range(REFINE_SWEEPS):
+        step = 1 if sweep % 2 else -1  # inward, then outward, ...
+        _refine(filled_colour, filled_depth, source, offsets, ring_rows[::step],
+                ring_cols[::step], sweep)
     _vote(filled_colour, offsets, ring_rows, ring_cols)
     return filled_colour, filled_depth
 
@@ -277,6 +284,55 @@ def _synthesise(colour, depth, source, rows, cols):
             _neighbour_mean(colour, depth, filled, y, x, minimum)
         filled[y, x] = True
     return offsets
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine(colour, depth, source, offsets, rows, cols, sweep):
+    # One PatchMatch sweep over the filled pixels, now that every patch is complete: each
+    # tries its neighbours' sources (shifted) and random ones around its own at shrinking
+    # distances, and keeps the best far enough source.
+    height, width = source.shape
+    valid = source.copy()
+    for k in range(rows.shape[0]):
+        valid[rows[k], cols[k]] = True
+    for k in range(rows.shape[0]):
+        y, x = rows[k], cols[k]
+        minimum = depth[y, x] * (1.0 - FOREGROUND_MARGIN)
+        best_y, best_x = offsets[y, x, 0], offsets[y, x, 1]
+        best_score = np.inf
+        if best_y >= 0:
+            best_score = _patch_distance(colour, valid, source, y, x, best_y, best_x)
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                yy, xx = y + dy, x + dx
+                if not (0 <= yy < height and 0 <= xx < width) or offsets[yy, xx, 0] < 0:
+                    continue
+                cy, cx = offsets[yy, xx, 0] - dy, offsets[yy, xx, 1] - dx
+                if not (0 <= cy < height and 0 <= cx < width) or not source[cy, cx]:
+                    continue
+                if depth[cy, cx] < minimum:
+                    continue
+                score = _patch_distance(colour, valid, source, y, x, cy, cx)
+                if score < best_score:
+                    best_score, best_y, best_x = score, cy, cx
+        reach = SEARCH_RADIUS_PX
+        j = 0
+        while reach >= 1 and best_y >= 0:
+            h = _candidate_hash(y, x, 1000 * (sweep + 1) + j)
+            cy = best_y + h % (2 * reach + 1) - reach
+            cx = best_x + (h >> 11) % (2 * reach + 1) - reach
+            if (0 <= cy < height and 0 <= cx < width and source[cy, cx]
+                    and depth[cy, cx] >= minimum):
+                score = _patch_distance(colour, valid, source, y, x, cy, cx)
+                if score < best_score:
+                    best_score, best_y, best_x = score, cy, cx
+            reach //= 2
+            j += 1
+        if best_y >= 0:
+            offsets[y, x, 0] = best_y
+            offsets[y, x, 1] = best_x
+            for c in range(3):
+                colour[y, x, c] = colour[best_y, best_x, c]
 
 
 @numba.njit(cache=True, nogil=True)
