@@ -230,6 +230,18 @@ def _patch_distance(colour, valid, source, ty, tx, sy, sx):
 
 
 @numba.njit(cache=True, nogil=True)
+def _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum):
+    # A source candidate's patch distance; inf when it is outside, not a background source,
+    # or nearer than the surface being continued.
+    height, width = source.shape
+    if not (0 <= cy < height and 0 <= cx < width) or not source[cy, cx]:
+        return np.inf
+    if depth[cy, cx] < minimum:
+        return np.inf
+    return _patch_distance(colour, valid, source, y, x, cy, cx)
+
+
+@numba.njit(cache=True, nogil=True)
 def _synthesise(colour, depth, source, rows, cols):
     # Exemplar synthesis in ring order: each hole pixel copies the centre of the best
     # matching source patch among coherent candidates (its filled neighbours' sources,
@@ -266,11 +278,7 @@ def _synthesise(colour, depth, source, rows, cols):
         best_score = np.inf
         for j in range(n):
             cy, cx = candidates[j, 0], candidates[j, 1]
-            if not (0 <= cy < height and 0 <= cx < width) or not source[cy, cx]:
-                continue
-            if depth[cy, cx] < minimum:
-                continue
-            score = _patch_distance(colour, valid, source, y, x, cy, cx)
+            score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
             if score < best_score:
                 best_score = score
                 best_y, best_x = cy, cx
@@ -308,11 +316,7 @@ def _refine(colour, depth, source, offsets, rows, cols, sweep):
                 if not (0 <= yy < height and 0 <= xx < width) or offsets[yy, xx, 0] < 0:
                     continue
                 cy, cx = offsets[yy, xx, 0] - dy, offsets[yy, xx, 1] - dx
-                if not (0 <= cy < height and 0 <= cx < width) or not source[cy, cx]:
-                    continue
-                if depth[cy, cx] < minimum:
-                    continue
-                score = _patch_distance(colour, valid, source, y, x, cy, cx)
+                score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
                 if score < best_score:
                     best_score, best_y, best_x = score, cy, cx
         reach = SEARCH_RADIUS_PX
@@ -321,11 +325,9 @@ def _refine(colour, depth, source, offsets, rows, cols, sweep):
             h = _candidate_hash(y, x, 1000 * (sweep + 1) + j)
             cy = best_y + h % (2 * reach + 1) - reach
             cx = best_x + (h >> 11) % (2 * reach + 1) - reach
-            if (0 <= cy < height and 0 <= cx < width and source[cy, cx]
-                    and depth[cy, cx] >= minimum):
-                score = _patch_distance(colour, valid, source, y, x, cy, cx)
-                if score < best_score:
-                    best_score, best_y, best_x = score, cy, cx
+            score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
+            if score < best_score:
+                best_score, best_y, best_x = score, cy, cx
             reach //= 2
             j += 1
         if best_y >= 0:
