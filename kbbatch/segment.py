@@ -61,8 +61,9 @@ HOLE_FILL_MAX_FRACTION = 0.05
 fingers stays background, a speckle in a shirt does not)."""
 
 BOX_CORE_FRACTION = 0.5
-"""An instance keeps only the mask pieces that reach the central part of its box (this share
-of its width and height): a neighbour's arm or shoulder inside the box is not this person."""
+"""An instance keeps the mask pieces that reach the central part of its box (this share of its
+width and height), and those mostly outside other objects' boxes: a neighbour's arm or
+shoulder inside the box is not this person, a leg cut off by a pole is."""
 
 HEAD_FRACTION = 0.2
 """The top of a person box, this share of its height, holds the head: the face region that
@@ -190,11 +191,17 @@ def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) 
     return _box_mask(shape, (x0, y0, x1, y0 + HEAD_FRACTION * (y1 - y0)))
 
 
-def pieces_reaching(mask: np.ndarray, region: np.ndarray) -> np.ndarray:
-    """The connected pieces of mask that overlap region."""
+def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """The connected pieces of mask that reach core, or lie mostly outside others (the other
+    objects' boxes): a piece cut off by an occluder stays, a neighbour's arm does not."""
     count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
-    touching = np.unique(labels[region & mask])
-    return np.isin(labels, touching[touching > 0])
+    area = np.bincount(labels.ravel(), minlength=count)
+    contested = np.bincount(labels[others].ravel(), minlength=count)
+    reaching = np.zeros(count, bool)
+    reaching[np.unique(labels[core & mask])] = True
+    keep = reaching | (contested < 0.5 * area)
+    keep[0] = False
+    return keep[labels]
 
 
 def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
@@ -288,6 +295,11 @@ def find_instances(image: np.ndarray) -> list[Instance]:
     labels = semantic_labels(image)
     salient = saliency > SALIENT_THRESHOLD if saliency is not None else None
 
+    objects = [
+        d for d in detections
+        if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
+    ]
+
     def shape_mask(detection: Detection) -> np.ndarray:
         in_box = _box_mask(shape, detection.box)
         parts = []
@@ -297,13 +309,13 @@ def find_instances(image: np.ndarray) -> list[Instance]:
             parts.append(salient)
         if not parts:
             return in_box
-        return pieces_reaching(in_box & np.logical_or.reduce(parts),
-                               _box_core(shape, detection.box))
+        others = np.zeros(shape, bool)
+        for other in objects:
+            if other is not detection:
+                others |= _box_mask(shape, other.box)
+        return own_pieces(in_box & np.logical_or.reduce(parts),
+                          _box_core(shape, detection.box), others)
 
-    objects = [
-        d for d in detections
-        if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
-    ]
     accessories = [d for d in detections if d.class_name in paper.ACCESSORY_CLASSES]
     masks = [shape_mask(d) for d in objects]
     for accessory in accessories:

@@ -7,7 +7,7 @@ import pytest
 from kbbatch.camera import working_size
 from kbbatch.depth.popup import popup_disparity
 from kbbatch.images import read_image
-from kbbatch.segment import FRAGMENT_MIN_PX, clean_mask, group_cards
+from kbbatch.segment import FRAGMENT_MIN_PX, clean_mask, group_cards, own_pieces
 
 from .conftest import SHARED, textured_image
 
@@ -35,6 +35,20 @@ def test_clean_mask_keeps_a_face_whole_even_where_it_is_thin():
     face[20:60, 50:150] = True
     assert not clean_mask(mask)[30:55, 98:101].any()  # without protection it is opened away
     assert clean_mask(mask, keep=face)[30:60, 98:101].all()
+
+
+def test_an_instance_keeps_its_own_pieces_not_its_neighbours():
+    mask = np.zeros((200, 300), bool)
+    mask[40:150, 80:160] = True  # the body, through the box's core
+    mask[160:200, 90:120] = True  # a leg below an occluder (a pole, a table)
+    mask[60:120, 175:200] = True  # a neighbour's arm reaching into the box
+    core = np.zeros_like(mask)
+    core[50:150, 100:150] = True
+    others = np.zeros_like(mask)
+    others[30:200, 170:300] = True  # the neighbour's box
+    kept = own_pieces(mask, core, others)
+    assert kept[40:150, 80:160].all() and kept[160:200, 90:120].all()
+    assert not kept[60:120, 175:200].any()
 
 
 def test_touching_cards_at_a_similar_depth_become_one_with_the_gap_between():
