@@ -222,16 +222,24 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     small_holes = [k for k in range(1, count) if k not in border
                    and stats[k, cv2.CC_STAT_AREA] < HOLE_FILL_MAX_FRACTION * area]
     filled = opened.astype(bool) | np.isin(labels, small_holes)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(filled.astype(np.uint8),
+    return drop_fragments(filled, keep)
+
+
+def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """mask without pieces under FRAGMENT_MIN_FRACTION of its largest or FRAGMENT_MIN_PX;
+    a piece holding at least a quarter of the mask's keep pixels (the face) always stays."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
                                                                connectivity=8)
     if count <= 1:
-        return filled
-    areas = stats[1:, cv2.CC_STAT_AREA]
-    minimum = max(FRAGMENT_MIN_FRACTION * areas.max(), FRAGMENT_MIN_PX)
-    kept = [k + 1 for k, a in enumerate(areas) if a >= minimum]
+        return mask.astype(bool)
+    areas = stats[:, cv2.CC_STAT_AREA]
+    minimum = max(FRAGMENT_MIN_FRACTION * areas[1:].max(), FRAGMENT_MIN_PX)
+    kept = areas >= minimum
     if keep is not None:
-        kept += [k for k in np.unique(labels[keep & filled]) if k > 0]
-    return np.isin(labels, kept)
+        in_face = np.bincount(labels[keep & mask], minlength=count)
+        kept |= in_face >= max(1, 0.25 * in_face[1:].sum())
+    kept[0] = False
+    return kept[labels]
 
 
 def group_cards(masks: list[np.ndarray], disparities: list[float]
@@ -342,6 +350,7 @@ def find_instances(image: np.ndarray) -> list[Instance]:
         for _, _, other_face in kept:  # nor taken by another card
             if other_face is not None and other_face is not face:
                 mask = mask & ~other_face
+        mask = drop_fragments(mask, face)
         if mask.sum() < max(paper.SALIENT_MASK_MIN_PX, FRAGMENT_MIN_PX):
             continue
         ys, xs = np.nonzero(mask)
