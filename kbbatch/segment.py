@@ -67,7 +67,10 @@ shoulder inside the box is not this person, a leg cut off by a pole is."""
 
 HEAD_FRACTION = 0.2
 """The top of a person box, this share of its height, holds the head: the face region that
-no cleaning removes and no other card takes."""
+no cleaning removes and no other card takes..."""
+
+HEAD_WIDTH_FRACTION = 0.6
+"""... in the central part of the box, this share of its width."""
 
 GROUP_TOUCH_PX = 12
 """Cards whose masks come within twice this distance (working px) touch: overlapping people, or
@@ -186,9 +189,11 @@ def _box_core(shape: tuple[int, int], box: tuple[float, float, float, float]) ->
 
 
 def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) -> np.ndarray:
-    """The head (face) part of a person box: its top HEAD_FRACTION, in image pixels."""
+    """The head (face) part of a person box: its top HEAD_FRACTION, central HEAD_WIDTH_FRACTION
+    (a flag or a lamp beside the head is not protected as a face), in image pixels."""
     x0, y0, x1, y1 = box
-    return _box_mask(shape, (x0, y0, x1, y0 + HEAD_FRACTION * (y1 - y0)))
+    margin = (1 - HEAD_WIDTH_FRACTION) / 2 * (x1 - x0)
+    return _box_mask(shape, (x0 + margin, y0, x1 - margin, y0 + HEAD_FRACTION * (y1 - y0)))
 
 
 def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -227,7 +232,7 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
 
 def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     """mask without pieces under FRAGMENT_MIN_FRACTION of its largest or FRAGMENT_MIN_PX;
-    a piece holding at least a quarter of the mask's keep pixels (the face) always stays."""
+    the piece holding most of keep (the face) always stays."""
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
                                                                connectivity=8)
     if count <= 1:
@@ -237,7 +242,9 @@ def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarr
     kept = areas >= minimum
     if keep is not None:
         in_face = np.bincount(labels[keep & mask], minlength=count)
-        kept |= in_face >= max(1, 0.25 * in_face[1:].sum())
+        in_face[0] = 0
+        if in_face.max() > 0:
+            kept[int(np.argmax(in_face))] = True
     kept[0] = False
     return kept[labels]
 
