@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
 import sys
@@ -37,6 +38,8 @@ from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
 from kbbatch.render import PointCloud, render_frame
+from kbbatch.risk import Risk, relieved
+from kbbatch.risk import assess as assess_risk
 
 MAX_CLOUD_POINTS = 40_000_000
 """The largest point cloud a clip may need; a crop so tight that it would need more is refused
@@ -57,6 +60,8 @@ SCRATCH_PREFIX = "kbbatch-frames-"
 """Temporary frame stores are named with this and their process id."""
 
 CLIP_SUFFIX = ".mp4"
+
+log = logging.getLogger(__name__)
 
 
 CORES_PER_JOB = 4
@@ -99,6 +104,7 @@ class ClipResult:
     frames: int = 0
     detail: str | None = None  # traceback of an unexpected failure
     note: str | None = None  # e.g. why the clip is named by content
+    risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,7 @@ class PreparedScene:
     cloud: PointCloud
     depth_backend: str
     disparity: np.ndarray  # relative, at the working size
+    risk: Risk | None = None
 
 
 def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
@@ -169,6 +176,12 @@ def prepare_scene(
     if not plan.parallax:
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))
+    risk = assess_risk(working, depth, plan, scene)
+    if risk.relief < 1.0:  # do no harm: less parallax rather than a broken-looking clip
+        log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
+                    round(100 * risk.relief), "; ".join(risk.reasons))
+        depth = relieved(depth, risk.relief)
+        scene = SceneGeometry(width, height, nearest_depth(depth))
     timings["plan"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
@@ -180,7 +193,7 @@ def prepare_scene(
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
-                         depth_result.disparity)
+                         depth_result.disparity, risk)
 
 
 def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions
@@ -397,6 +410,7 @@ def make_clip(
                               preset.easing)
         prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
+        result.risk = prepared.risk.summary() if prepared.risk else None
         if options.save_depth:
             save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)

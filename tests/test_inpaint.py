@@ -172,3 +172,30 @@ def test_a_cloud_whose_height_rounds_differently_still_builds():
     photo = cv2.resize(image, (618, 387), interpolation=cv2.INTER_LINEAR)
     extension = build_extended_cloud(photo, depth, plan, scene)
     assert len(extension.cloud) >= 618 * 386
+
+
+def test_fill_of_a_textured_background_is_textured_and_never_blocked_coloured():
+    rng = np.random.default_rng(3)
+    height, width = 80, 120
+    # A background of vertical stripes with grain (a curtain), a red object on the left.
+    stripes = 90 + 60 * np.sin(np.arange(width) * 2 * np.pi / 6.0)
+    colour = np.repeat(stripes[None, :, None], height, 0).repeat(3, 2)
+    colour = (colour + rng.normal(0, 8, colour.shape)).astype(np.float32)
+    depth = np.full((height, width), 100.0, np.float32)
+    depth[:, :40] = 20.0
+    colour[:, :40] = (255, 0, 0)
+    hole = np.zeros((height, width), bool)
+    hole[10:70, 40:70] = True
+    blocked = near_side_of_holes(np.where(hole, np.inf, depth), hole)
+    filled_colour, filled_depth = fill_background(colour, np.where(hole, 0, depth), hole, blocked)
+    np.testing.assert_allclose(filled_depth[hole], 100.0)
+    fill = filled_colour[hole]
+    assert (np.abs(fill - (255, 0, 0)).max(axis=-1) > 60).all(), "red came from the blocked side"
+    # Texture: the horizontal detail inside the fill is of the background's order, not flat.
+    grey = filled_colour.mean(axis=-1)
+    detail = np.abs(np.diff(grey, axis=1))
+    inside = detail[20:60, 45:65].mean()
+    around = detail[20:60, 80:110].mean()
+    assert inside > 0.5 * around, f"flat fill: detail {inside:.1f} against {around:.1f} around"
+    old_style = np.abs(np.diff(cv2.GaussianBlur(grey, (0, 0), 3.0), axis=1))[20:60, 45:65].mean()
+    assert inside > 2 * old_style
