@@ -1,5 +1,10 @@
 """Point cloud from image + depth, and its forward-projection renderer (paper section 3.2).
 
+Points carry an alpha: the soft edge of a foreground layer (kbbatch.layers) is drawn with
+premultiplied alpha over the surface behind it. Each pixel keeps two surfaces, the front one
+and the nearest one behind it, so a soft edge is composited over what really lies behind it
+wherever the camera moves, instead of dragging its old background along.
+
 The kernels are compiled with numba and release the GIL, so frames render in parallel threads
 (one frame per thread keeps every frame bit-identical whatever the thread count).
 """
@@ -39,6 +44,13 @@ class PointCloud:
     y: np.ndarray
     z: np.ndarray
     colour: np.ndarray  # (N, 3) uint8 RGB
+    alpha: np.ndarray | None = None
+    """(N,) uint8 coverage of each point, 255 = opaque (the default); below 255 only on the
+    soft edge of a foreground layer, whose colour is then its own, un-mixed."""
+
+    def __post_init__(self) -> None:
+        if self.alpha is None:
+            object.__setattr__(self, "alpha", np.full(self.z.shape[0], 255, np.uint8))
 
     def __len__(self) -> int:
         return int(self.z.shape[0])
@@ -49,6 +61,7 @@ class PointCloud:
             np.concatenate([self.y, other.y]),
             np.concatenate([self.z, other.z]),
             np.concatenate([self.colour, other.colour]),
+            np.concatenate([self.alpha, other.alpha]),
         )
 
 
@@ -78,10 +91,12 @@ def back_project(
     depth: np.ndarray,
     view: View,
     keep: np.ndarray | None = None,
+    alpha: np.ndarray | None = None,
 ) -> PointCloud:
     """Points seen by a view: each pixel centre pushed out to its depth.
 
-    colour and depth must have the view's size; keep selects which pixels become points.
+    colour and depth (and alpha, uint8, when given) must have the view's size; keep selects
+    which pixels become points.
     """
     height, width = depth.shape
     if (width, height) != (view.width_px, view.height_px):
@@ -98,100 +113,150 @@ def back_project(
         np.ascontiguousarray(y + np.float32(view.position[1]), dtype=np.float32),
         np.ascontiguousarray(z + np.float32(view.position[2]), dtype=np.float32),
         np.ascontiguousarray(colour[rows, cols], dtype=np.uint8),
+        None if alpha is None else np.ascontiguousarray(alpha[rows, cols], dtype=np.uint8),
     )
 
 
-_WEIGHT = 3
+_ALPHA = 3  # front cell: premultiplied red, green, blue, then the summed alpha weight
+_BACK = 4  # back cell: red, green, blue weighted by alpha, then the summed alpha weight
+_CELL = 8
+OPAQUE_ALPHA = 0.99
+"""A pixel whose front surface has at least this alpha hides whatever lies behind it."""
+
+
+@dataclass(frozen=True)
+class SplatBuffers:
+    """Per-pixel accumulation of the front surface and the nearest surface behind it.
+
+    cell holds, interleaved so that one splat touches one 32-byte cell: the front's colour
+    premultiplied by weight x alpha and its summed weight x alpha, then the back's colour
+    weighted by weight x alpha and its summed weight x alpha. weight is the front's summed
+    bilinear weight (its coverage); front and back are the two surfaces' inverse depths,
+    0 where there is none.
+    """
+
+    cell: np.ndarray  # (H, W, 8) float32
+    weight: np.ndarray  # (H, W) float32
+    front: np.ndarray  # (H, W) float32
+    back: np.ndarray  # (H, W) float32
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> SplatBuffers:
+        return cls(
+            np.zeros((height, width, _CELL), np.float32),
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width), np.float32),
+        )
+
+
 _buffers = threading.local()
 
 
-def _scratch(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+def _scratch(height: int, width: int) -> SplatBuffers:
     """Per-thread accumulation buffers, reused across frames (no page faults per frame)."""
     key = (height, width)
     if getattr(_buffers, "key", None) != key:
         _buffers.key = key
-        _buffers.accumulator = np.zeros((height, width, 4), np.float32)
-        _buffers.front = np.empty((height, width), np.float32)
-    return _buffers.accumulator, _buffers.front
+        _buffers.splats = SplatBuffers.empty(height, width)
+    return _buffers.splats
 
 
 def _splat_view(
     cloud: PointCloud,
     view: View,
     disparity_scale: float,
-    accumulator: np.ndarray,
-    front: np.ndarray,
+    buffers: SplatBuffers,
     clear: bool = True,
 ) -> None:
     _splat_kernel(
-        cloud.x, cloud.y, cloud.z, cloud.colour,
+        cloud.x, cloud.y, cloud.z, cloud.colour, cloud.alpha,
         np.float32(view.position[0]), np.float32(view.position[1]),
         np.float32(view.position[2]), np.float32(view.focal_px),
         np.float32(view.principal_x_px - 0.5), np.float32(view.principal_y_px - 0.5),
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
-        accumulator, front, clear,
+        buffers.cell, buffers.weight, buffers.front, buffers.back, clear,
     )
 
 
-def _splat_new(cloud: PointCloud, view: View, disparity_scale: float
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Splat into new buffers. Interleaved (red, green, blue, weight): each splat touches one
-    16-byte cell; the front surface's inverse depth lives in its own compact array."""
-    accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
-    front = np.empty((view.height_px, view.width_px), np.float32)
-    _splat_view(cloud, view, disparity_scale, accumulator, front)
-    return accumulator, front
+def _splat_new(cloud: PointCloud, view: View, disparity_scale: float) -> SplatBuffers:
+    """Splat into new buffers."""
+    buffers = SplatBuffers.empty(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, buffers, clear=False)
+    return buffers
 
 
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
-    """Render a view: soft z-buffered bilinear splats, crack filter, normalise.
+    """Render a view: soft z-buffered bilinear splats, crack filter, composite, normalise.
 
     disparity_scale converts inverse depth into working disparity pixels (f * baseline), so
-    the tolerances mean the same at every output size.
+    the tolerances mean the same at every output size. A pixel counts as covered (weight > 0)
+    when its front surface is opaque or has a surface behind it; a soft edge over nothing is
+    a hole still to fill.
     """
-    accumulator, front = _splat_new(cloud, view, disparity_scale)
+    buffers = _splat_new(cloud, view, disparity_scale)
     colour = np.empty((view.height_px, view.width_px, 3), np.float32)
     depth = np.empty((view.height_px, view.width_px), np.float32)
     weight = np.empty((view.height_px, view.width_px), np.float32)
-    _normalise_kernel(accumulator, front, colour, depth, weight)
+    _normalise_kernel(buffers.cell, buffers.weight, buffers.front, buffers.back,
+                      colour, depth, weight)
     return Rendering(colour, depth, weight)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _composite(cell, front_weight, has_back, out):
+    """The pixel's colour: the front over the back with premultiplied alpha; a soft front
+    with nothing behind it keeps its own colour. Returns whether the pixel is covered."""
+    alpha_sum = cell[_ALPHA]
+    alpha = min(alpha_sum / front_weight, np.float32(1.0))
+    if has_back and alpha < np.float32(OPAQUE_ALPHA):
+        back_scale = (np.float32(1.0) - alpha) / cell[_BACK + _ALPHA]
+        front_scale = np.float32(1.0) / front_weight
+        for c in range(3):
+            out[c] = cell[c] * front_scale + cell[_BACK + c] * back_scale
+        return True
+    if alpha_sum > np.float32(MIN_SPLAT_WEIGHT * MIN_SPLAT_WEIGHT):
+        scale = np.float32(1.0) / alpha_sum
+        for c in range(3):
+            out[c] = cell[c] * scale
+    else:
+        for c in range(3):
+            out[c] = 0.0
+    return alpha >= np.float32(OPAQUE_ALPHA)
+
+
 @numba.njit(cache=True, nogil=True)
-def _normalise_kernel(accumulator, front, colour, depth, weight):
+def _normalise_kernel(cell, front_weight, front, back, colour, depth, weight):
     height, width = front.shape
     for yy in range(height):
         for xx in range(width):
-            w = accumulator[yy, xx, _WEIGHT]
+            w = front_weight[yy, xx]
+            covered = False
             if w > MIN_SPLAT_WEIGHT:
-                scale = np.float32(1.0) / w
-                for c in range(3):
-                    colour[yy, xx, c] = accumulator[yy, xx, c] * scale
+                covered = _composite(cell[yy, xx], w, back[yy, xx] > 0, colour[yy, xx])
                 depth[yy, xx] = np.float32(1.0) / front[yy, xx]
-                weight[yy, xx] = w
             else:
                 for c in range(3):
                     colour[yy, xx, c] = 0.0
                 depth[yy, xx] = np.inf
-                weight[yy, xx] = 0.0
+            weight[yy, xx] = w if covered else np.float32(0.0)
 
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """Which pixels of a view the cloud covers (the planner's disocclusion test)."""
-    accumulator, _ = _splat_new(cloud, view, disparity_scale)
-    return accumulator[..., _WEIGHT] > MIN_SPLAT_WEIGHT
+    return render(cloud, view, disparity_scale).covered
 
 
 def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """A finished 8-bit frame: rendered, holes filled from the background side, rounded.
 
-    The same passes as render(), with normalising, filling and rounding fused into one.
+    The same passes as render(), with compositing, filling and rounding fused into one.
     """
-    accumulator, front = _scratch(view.height_px, view.width_px)
-    _splat_view(cloud, view, disparity_scale, accumulator, front, clear=False)
+    buffers = _scratch(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, buffers, clear=False)
     frame = np.empty((view.height_px, view.width_px, 3), np.uint8)
-    _finish_kernel(accumulator, front, frame)
+    _finish_kernel(buffers.cell, buffers.weight, buffers.front, buffers.back, frame)
     return frame
 
 
@@ -246,21 +311,24 @@ def _corner(k, x0, y0, fx, fy, width, height):
 
 @numba.njit(cache=True, nogil=True)
 def _splat_kernel(
-    xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
-    accumulator, front, clear,
+    xs, ys, zs, colours, alphas, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
+    cell, front_weight, front, back, clear,
 ):
-    # One pass of soft z-buffering, then the crack filter. All arithmetic is float32: float64
-    # promotion made this loop two to three times slower.
+    # One pass of two-surface soft z-buffering, then the crack filter. All arithmetic is
+    # float32: float64 promotion made this loop two to three times slower.
     height, width = front.shape
     one = np.float32(1.0)
-    if clear:  # render_frame's finishing pass leaves its buffer cleared for the next frame
-        accumulator[:] = 0.0
+    if clear:  # render_frame's finishing pass leaves these cleared for the next frame
+        cell[:] = 0.0
+        front_weight[:] = 0.0
+        back[:] = 0.0
     front[:] = 0.0
     cols = np.empty(PROJECT_CHUNK, np.int32)
     rows = np.empty(PROJECT_CHUNK, np.int32)
     frac_x = np.empty(PROJECT_CHUNK, np.float32)
     frac_y = np.empty(PROJECT_CHUNK, np.float32)
     inv_zs = np.empty(PROJECT_CHUNK, np.float32)
+    to_unit = np.float32(1.0 / 255.0)
     count = zs.shape[0]
     for start in range(0, count, PROJECT_CHUNK):
         _project_chunk(
@@ -276,62 +344,97 @@ def _splat_kernel(
             fy = frac_y[j]
             inv_z = inv_zs[j]
             i = start + j
+            a = np.float32(alphas[i]) * to_unit
             r = np.float32(colours[i, 0])
             g = np.float32(colours[i, 1])
             b = np.float32(colours[i, 2])
             if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
                 # Interior: all four pixels exist (the common case, unrolled).
-                _soft_z(front, accumulator, y0, x0, (one - fx) * (one - fy), inv_z, soft_inv_z,
-                        r, g, b)
-                _soft_z(front, accumulator, y0, x0 + 1, fx * (one - fy), inv_z, soft_inv_z,
-                        r, g, b)
-                _soft_z(front, accumulator, y0 + 1, x0, (one - fx) * fy, inv_z, soft_inv_z,
-                        r, g, b)
-                _soft_z(front, accumulator, y0 + 1, x0 + 1, fx * fy, inv_z, soft_inv_z, r, g, b)
+                _soft_z(cell, front_weight, front, back, y0, x0, (one - fx) * (one - fy),
+                        inv_z, soft_inv_z, a, r, g, b)
+                _soft_z(cell, front_weight, front, back, y0, x0 + 1, fx * (one - fy),
+                        inv_z, soft_inv_z, a, r, g, b)
+                _soft_z(cell, front_weight, front, back, y0 + 1, x0, (one - fx) * fy,
+                        inv_z, soft_inv_z, a, r, g, b)
+                _soft_z(cell, front_weight, front, back, y0 + 1, x0 + 1, fx * fy,
+                        inv_z, soft_inv_z, a, r, g, b)
                 continue
             for k in range(4):  # at the frame's edge: only the corners inside
                 inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
                 if inside:
-                    _soft_z(front, accumulator, yy, xx, w, inv_z, soft_inv_z, r, g, b)
-    _clear_cracks(front, accumulator, crack_inv_z)
+                    _soft_z(cell, front_weight, front, back, yy, xx, w, inv_z, soft_inv_z,
+                            a, r, g, b)
+    _clear_cracks(cell, front_weight, front, back, crack_inv_z)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _soft_z(front, accumulator, yy, xx, w, inv_z, soft_inv_z, r, g, b):
-    """Splat one bilinear corner with soft z-buffering.
+def _soft_z(cell, front_weight, front, back, yy, xx, w, inv_z, soft_inv_z, a, r, g, b):
+    """Splat one bilinear corner with two-surface soft z-buffering.
 
-    A point clearly nearer than the pixel's front surface restarts the pixel, one within
-    soft_inv_z of it blends in, and a farther one is hidden. The front is raised with max(),
-    not a branch: which of two blending points is nearer is a coin toss the CPU mispredicts.
+    A point clearly nearer than the pixel's front surface starts a new front (the old one
+    becomes the back), one within soft_inv_z of it blends in, and a farther one goes the same
+    way into the back surface. Fronts are raised with max(), not a branch: which of two
+    blending points is nearer is a coin toss the CPU mispredicts.
     """
     if w <= np.float32(MIN_SPLAT_WEIGHT):
         return
+    here = cell[yy, xx]
+    wa = w * a
     surface = front[yy, xx]
     if surface < inv_z - soft_inv_z:
+        if surface > 0:
+            for c in range(4):
+                here[_BACK + c] = here[c]
+            back[yy, xx] = surface
         front[yy, xx] = inv_z
-        accumulator[yy, xx, 0] = w * r
-        accumulator[yy, xx, 1] = w * g
-        accumulator[yy, xx, 2] = w * b
-        accumulator[yy, xx, _WEIGHT] = w
+        here[0] = wa * r
+        here[1] = wa * g
+        here[2] = wa * b
+        here[_ALPHA] = wa
+        front_weight[yy, xx] = w
     elif surface <= inv_z + soft_inv_z:
         front[yy, xx] = max(surface, inv_z)
-        accumulator[yy, xx, 0] += w * r
-        accumulator[yy, xx, 1] += w * g
-        accumulator[yy, xx, 2] += w * b
-        accumulator[yy, xx, _WEIGHT] += w
+        here[0] += wa * r
+        here[1] += wa * g
+        here[2] += wa * b
+        here[_ALPHA] += wa
+        front_weight[yy, xx] += w
+    else:
+        behind = back[yy, xx]
+        if behind < inv_z - soft_inv_z:
+            back[yy, xx] = inv_z
+            here[_BACK] = wa * r
+            here[_BACK + 1] = wa * g
+            here[_BACK + 2] = wa * b
+            here[_BACK + _ALPHA] = wa
+        elif behind <= inv_z + soft_inv_z:
+            back[yy, xx] = max(behind, inv_z)
+            here[_BACK] += wa * r
+            here[_BACK + 1] += wa * g
+            here[_BACK + 2] += wa * b
+            here[_BACK + _ALPHA] += wa
 
 
 @numba.njit(cache=True, nogil=True)
-def _clear_cracks(front, accumulator, crack_inv_z):
+def _clear_cracks(cell, front_weight, front, back, crack_inv_z):
     """Empty the pixels where background shines through a crack in a magnified foreground:
-    two opposite neighbours are nearer by crack_inv_z. They are filled like any hole."""
+    two opposite neighbours are nearer by crack_inv_z. They are filled like any hole.
+
+    Only solid surfaces count: where the front is a soft edge, the surface behind it is the
+    pixel's solid one, so the fringe of an object is never taken for a crack around it."""
     height, width = front.shape
+    solid = np.empty_like(front)
+    for yy in range(height):
+        for xx in range(width):
+            w = front_weight[yy, xx]
+            opaque = w > MIN_SPLAT_WEIGHT and cell[yy, xx, _ALPHA] >= OPAQUE_ALPHA * w
+            solid[yy, xx] = front[yy, xx] if opaque else back[yy, xx]
     # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
-    above = front[0].copy()
+    above = solid[0].copy()
     row = np.empty_like(above)
     for yy in range(1, height - 1):
-        row[:] = front[yy]
-        below = front[yy + 1]
+        row[:] = solid[yy]
+        below = solid[yy + 1]
         for xx in range(1, width - 1):
             threshold = row[xx] + crack_inv_z
             # Opposite neighbour pairs: horizontal, vertical and both diagonals.
@@ -342,30 +445,35 @@ def _clear_cracks(front, accumulator, crack_inv_z):
                 or (above[xx + 1] > threshold and below[xx - 1] > threshold)
             ):
                 front[yy, xx] = 0.0
-                accumulator[yy, xx, :] = 0.0
+                back[yy, xx] = 0.0
+                front_weight[yy, xx] = 0.0
+                cell[yy, xx, :] = 0.0
         above, row = row, above
 
 
 @numba.njit(cache=True, nogil=True)
-def _finish_kernel(accumulator, front, frame):
-    """Normalise, round, and give every empty pixel the colour of the farthest covered pixel
+def _finish_kernel(cell, front_weight, front, back, frame):
+    """Composite, round, and give every empty pixel the colour of the farthest covered pixel
     found along its row and column (a cheap fill from the background side). Leaves the
-    accumulator cleared for the next frame; front keeps 0 where a pixel was empty."""
+    buffers cleared for the next frame; front keeps 0 where a pixel was empty."""
     height, width = front.shape
     empty = 0
+    pixel = np.empty(3, np.float32)
     for yy in range(height):
         for xx in range(width):
-            cell = accumulator[yy, xx]
-            w = cell[_WEIGHT]
+            w = front_weight[yy, xx]
+            here = cell[yy, xx]
             if w > MIN_SPLAT_WEIGHT:
-                scale = np.float32(1.0) / w
+                _composite(here, w, back[yy, xx] > 0, pixel)
                 for c in range(3):
-                    frame[yy, xx, c] = min(255, int(cell[c] * scale + np.float32(0.5)))
+                    frame[yy, xx, c] = min(255, int(pixel[c] + np.float32(0.5)))
             else:
                 front[yy, xx] = 0.0
                 empty += 1
-            for c in range(4):
-                cell[c] = 0.0
+            for c in range(_CELL):
+                here[c] = 0.0
+            front_weight[yy, xx] = 0.0
+            back[yy, xx] = 0.0
     if empty == 0:
         return
     for yy in range(height):
