@@ -53,6 +53,7 @@ class SoftLayers:
 
     depth: np.ndarray  # (H, W) float32
     band: np.ndarray  # (H, W) bool
+    has_background: np.ndarray  # (H, W) bool, where a clean background colour was found
     alpha: np.ndarray  # (H, W) float32 0..1, the near layer's matte
     near_depth: np.ndarray  # (H, W) float32
     far_depth: np.ndarray  # (H, W) float32
@@ -65,7 +66,7 @@ class SoftLayers:
 
     @property
     def far(self) -> np.ndarray:
-        return self.band & (self.alpha < 1.0 - CLEAN_ALPHA)
+        return self.band & (self.alpha < 1.0 - CLEAN_ALPHA) & self.has_background
 
 
 def upsample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -142,8 +143,10 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     back_mean, back_weight = _normalised_blur(colour, clean_back, unmix_radius)
     front_mean, front_weight = _normalised_blur(colour, clean_front, unmix_radius)
     a = alpha[..., None]
-    background = np.where((back_weight > 0)[..., None], back_mean, colour)
-    background = np.where(a <= 0.0, colour, background)
+    # Where no clean background lies near, there is no background colour to give: the pixel
+    # gets no far point, and the extension fills what is behind it from background only.
+    has_background = (back_weight > 0) | (alpha <= 0.0)
+    background = np.where(a <= 0.0, colour, back_mean)
     front_start = np.where((front_weight > 0)[..., None], front_mean, colour)
     foreground = front_start + a * (colour - a * front_start - (1 - a) * background)
     foreground = np.where(a >= 1.0, colour, foreground)
@@ -152,6 +155,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     return SoftLayers(
         depth=smooth,
         band=band,
+        has_background=has_background,
         alpha=alpha,
         near_depth=cv2.resize(nearest, size, interpolation=cv2.INTER_NEAREST),
         far_depth=cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST),
