@@ -22,8 +22,9 @@ import numpy as np
 
 from kbbatch.render import depth_edges
 
-LAYER_BAND_PX = 3
-"""Pixels within this distance (working px) of a depth edge may belong to both layers."""
+LAYER_BAND_PX = 6
+"""Pixels within this distance (working px) of a depth edge may belong to both layers: wide
+enough for the soft edge of a defocused object (a blur of about 2.5 px)."""
 
 MATTE_RADIUS_PX = 2.0
 """Radius of the guided filter that shapes the matte along colour edges, in working px."""
@@ -33,13 +34,18 @@ MATTE_EPSILON = 1e-2
 below about 1e-2 OpenCV's float32 filter degrades to a plain blur on smooth gradients."""
 
 MATTE_SLACK_PX = 1
-"""The matte may place the object's edge this far (working px) from its depth edge."""
+"""The guided filter may place the object's edge this far (working px) from its depth edge."""
+
+COLOUR_CONTRAST = 40.0
+"""Difference (8-bit levels) between object and background colour at which the matte read
+from the colours and the one from the guided filter are trusted equally."""
 
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
-UNMIX_RADIUS_PX = 4.0
-"""How far (working px) clean pixels are looked for to estimate un-mixed colours."""
+SOLVE_ALPHA = 0.3
+"""Above this alpha the object's colour is solved exactly from the compositing equation;
+below it, it leans on the mean of the object's clean pixels nearby."""
 
 
 @dataclass(frozen=True)
@@ -92,63 +98,79 @@ def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
 def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     """The photo (RGB uint8 at the cloud's density) and its depth (working size) as soft layers.
 
-    The matte starts as the near side of each depth edge, enlarged smoothly, and is shaped by
-    a guided filter on the full-size photo (OpenCV ximgproc), so it follows the object's real
-    edge, anti-aliased. Background colour in the band is the mean of nearby pure-background
-    pixels, so no object colour stays behind; foreground colour is the mean of nearby
-    pure-foreground pixels corrected by the residual of the compositing equation (fast
-    approximate foreground estimation, Forte and Pitie 2021).
+    Near each depth edge, the clean colours of both sides are estimated from pixels well
+    inside each side (the background's beyond the band, so that none carries the object's
+    soft edge). The matte is each pixel's position on the line between those two colours,
+    where they differ, and a guided filter of the near side on the full-size photo (OpenCV
+    ximgproc) where they do not; so it follows the object's real, anti-aliased edge at the
+    output size. The object's colour is then solved from the compositing equation, so the
+    start view reproduces the photo, and the background's is the clean estimate, so no object
+    colour stays behind.
     """
     height, width = photo.shape[:2]
     scale = width / depth.shape[1]
-    window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * LAYER_BAND_PX + 1,) * 2)
+    band_px = LAYER_BAND_PX
+    window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
     nearest = cv2.erode(depth, window)
     farthest = cv2.dilate(depth, window)
     edges = depth_edges(depth).astype(np.uint8)
     small_band = cv2.dilate(edges, window) > 0
-    # Which side each pixel is on, judged over a reach that covers the matte filter's window
-    # too, so that the filter sees the far side as 0 beyond the band, not as a flat "near".
-    reach = LAYER_BAND_PX + int(np.ceil(MATTE_RADIUS_PX)) + 1
+    # Which side each pixel is on, judged over twice the band, so that clean pixels of both
+    # sides lie within reach of every band pixel.
+    reach = 2 * band_px + 2
     wide = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1,) * 2)
-    wide_near = cv2.erode(depth, wide)
-    wide_far = cv2.dilate(depth, wide)
-    to_near = (np.abs(1 / depth - 1 / wide_near) <= np.abs(1 / depth - 1 / wide_far)) & (
-        cv2.dilate(edges, wide) > 0
-    )
+    near_depth_wide = cv2.erode(depth, wide)
+    far_depth_wide = cv2.dilate(depth, wide)
+    in_reach = cv2.dilate(edges, wide) > 0
+    closer = np.abs(1 / depth - 1 / near_depth_wide) <= np.abs(1 / depth - 1 / far_depth_wide)
+    near_side = closer & in_reach
+    far_side = ~closer & in_reach
+    to_far = cv2.distanceTransform((~far_side).astype(np.uint8), cv2.DIST_L2, 3)
+    to_near = cv2.distanceTransform((~near_side).astype(np.uint8), cv2.DIST_L2, 3)
+    # Clean background: beyond the band; clean object: its deepest pixels (a thin pole has few).
+    back_source = (far_side & (to_near > band_px)).astype(np.float32)
+    front_source = np.where(near_side, np.minimum(to_far, band_px) ** 2, 0).astype(np.float32)
+
     size = (width, height)
     band = cv2.resize(small_band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-    near_mask = cv2.resize(to_near.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
-    guide = photo.astype(np.float32) / 255.0
-    radius = max(1, round(MATTE_RADIUS_PX * scale))
-    matte = cv2.ximgproc.guidedFilter(guide, near_mask, radius, MATTE_EPSILON)
-    # The depth edge says where the object is to within MATTE_SLACK_PX: the matte may move it
-    # that far, not further (where the object and its background have the same colour).
+    colour = photo.astype(np.float32)
+    box = max(1, round(2 * band_px * scale))
+    back_mean, back_weight = _normalised_blur(
+        colour, cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR), box)
+    front_mean, front_weight = _normalised_blur(
+        colour, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR), box)
+    has_background = back_weight > 1e-3
+    has_foreground = front_weight > 1e-3
+
+    near_mask = cv2.resize(near_side.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    guided = cv2.ximgproc.guidedFilter(photo.astype(np.float32) / 255.0, near_mask,
+                                       max(1, round(MATTE_RADIUS_PX * scale)), MATTE_EPSILON)
     slack = np.ones((2 * MATTE_SLACK_PX + 1,) * 2, np.uint8)
-    near_u8 = to_near.astype(np.uint8)
+    near_u8 = near_side.astype(np.uint8)
     most = cv2.resize(cv2.dilate(near_u8, slack).astype(np.float32), size,
                       interpolation=cv2.INTER_LINEAR)
     least = cv2.resize(cv2.erode(near_u8, slack).astype(np.float32), size,
                        interpolation=cv2.INTER_LINEAR)
-    matte = np.clip(matte, least, most)
+    guided = np.clip(guided, least, most)
+    contrast = front_mean - back_mean
+    spread = np.sum(contrast * contrast, axis=-1)
+    along = np.sum((colour - back_mean) * contrast, axis=-1) / np.maximum(spread, 1e-6)
+    trust = spread / (spread + COLOUR_CONTRAST**2)
+    trust = np.where(has_background & has_foreground, trust, 0.0)
+    matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided
     alpha = np.where(band, np.clip(matte, 0.0, 1.0), near_mask > 0.5).astype(np.float32)
     alpha[alpha < CLEAN_ALPHA] = 0.0
     alpha[alpha > 1.0 - CLEAN_ALPHA] = 1.0
 
-    colour = photo.astype(np.float32)
-    unmix_radius = max(1, round(UNMIX_RADIUS_PX * scale))
-    # Background sources keep a guard of one pixel from any trace of the near layer.
-    guard = np.ones((3, 3), np.uint8)
-    clean_back = cv2.erode((alpha <= 0.0).astype(np.uint8), guard).astype(np.float32)
-    clean_front = (alpha >= 1.0).astype(np.float32)
-    back_mean, back_weight = _normalised_blur(colour, clean_back, unmix_radius)
-    front_mean, front_weight = _normalised_blur(colour, clean_front, unmix_radius)
     a = alpha[..., None]
+    background = np.where(a <= 0.0, colour, back_mean)
     # Where no clean background lies near, there is no background colour to give: the pixel
     # gets no far point, and the extension fills what is behind it from background only.
-    has_background = (back_weight > 0) | (alpha <= 0.0)
-    background = np.where(a <= 0.0, colour, back_mean)
-    front_start = np.where((front_weight > 0)[..., None], front_mean, colour)
-    foreground = front_start + a * (colour - a * front_start - (1 - a) * background)
+    has_background = has_background | (alpha <= 0.0)
+    solved = (colour - (1 - a) * background) / np.maximum(a, SOLVE_ALPHA)
+    lean = np.clip(a / SOLVE_ALPHA, 0.0, 1.0)
+    front_start = np.where(has_foreground[..., None], front_mean, colour)
+    foreground = lean * solved + (1 - lean) * front_start
     foreground = np.where(a >= 1.0, colour, foreground)
 
     smooth = upsample_depth(depth, width, height)
