@@ -15,6 +15,7 @@ follow the photo's own colour edges at the output size instead of the working-si
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -39,6 +40,10 @@ MATTE_SLACK_PX = 1
 COLOUR_CONTRAST = 40.0
 """Difference (8-bit levels) between object and background colour at which the matte read
 from the colours and the one from the guided filter are trusted equally."""
+
+EDGE_BLUR_MAX_PX = 2.5
+"""The widest blur (Gaussian sigma, working px) an object's edge is assumed to have: its alpha
+beyond the depth edge stays below that blur's tail."""
 
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
@@ -84,6 +89,14 @@ def upsample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
     """
     disparity = cv2.resize(1.0 / depth, (width, height), interpolation=cv2.INTER_LINEAR)
     return (1.0 / disparity).astype(np.float32)
+
+
+def blurred_edge_tail(distance_px: np.ndarray) -> np.ndarray:
+    """Alpha of a step edge blurred by EDGE_BLUR_MAX_PX at this distance beyond it (negative:
+    inside)."""
+    table_px = np.linspace(-8.0 * EDGE_BLUR_MAX_PX, 8.0 * EDGE_BLUR_MAX_PX, 513)
+    tail = [0.5 * math.erfc(d / (math.sqrt(2.0) * EDGE_BLUR_MAX_PX)) for d in table_px]
+    return np.interp(distance_px, table_px, tail).astype(np.float32)
 
 
 def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
@@ -158,6 +171,12 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     trust = spread / (spread + COLOUR_CONTRAST**2)
     trust = np.where(has_background & has_foreground, trust, 0.0)
     matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided
+    # Beyond the depth edge an object's alpha can only fade like a blurred edge does, so a
+    # background that happens to share the object's colour is not taken for part of it.
+    # Pixel centres next to the near side lie half a pixel beyond its edge.
+    beyond = np.where(near_side, -float(band_px), to_near - 0.5).astype(np.float32)
+    outside_px = cv2.resize(beyond, size, interpolation=cv2.INTER_LINEAR)
+    matte = np.minimum(matte, blurred_edge_tail(outside_px))
     alpha = np.where(band, np.clip(matte, 0.0, 1.0), near_mask > 0.5).astype(np.float32)
     alpha[alpha < CLEAN_ALPHA] = 0.0
     alpha[alpha > 1.0 - CLEAN_ALPHA] = 1.0

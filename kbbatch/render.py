@@ -11,6 +11,7 @@ The kernels are compiled with numba and release the GIL, so frames render in par
 
 from __future__ import annotations
 
+import functools
 import threading
 from dataclasses import dataclass
 
@@ -52,6 +53,11 @@ class PointCloud:
         if self.alpha is None:
             object.__setattr__(self, "alpha", np.full(self.z.shape[0], 255, np.uint8))
 
+    @functools.cached_property
+    def soft_index(self) -> np.ndarray:
+        """Indices of the points below full alpha, which the renderer splats last."""
+        return np.flatnonzero(self.alpha < 255)
+
     def __len__(self) -> int:
         return int(self.z.shape[0])
 
@@ -67,11 +73,15 @@ class PointCloud:
 
 @dataclass(frozen=True)
 class Rendering:
-    """One rendered view: colour, per-pixel depth (inf where empty) and splat weight."""
+    """One rendered view: colour, per-pixel depth (inf where empty) and splat weight.
+
+    Where a soft edge of alpha below one half lies over a surface, depth is that surface's."""
 
     colour: np.ndarray  # (H, W, 3) float32 RGB 0..255
     depth: np.ndarray  # (H, W) float32
     weight: np.ndarray  # (H, W) float32, 0 where no point landed
+    fringe: np.ndarray | None = None
+    """(H, W) bool: the front is a layer's soft edge, its colour a mix of two surfaces."""
 
     @property
     def covered(self) -> np.ndarray:
@@ -117,74 +127,71 @@ def back_project(
     )
 
 
-_ALPHA = 3  # front cell: premultiplied red, green, blue, then the summed alpha weight
-_BACK = 4  # back cell: red, green, blue weighted by alpha, then the summed alpha weight
-_CELL = 8
+_WEIGHT = 3  # a cell holds red, green, blue weighted by weight x alpha, then the weight
 OPAQUE_ALPHA = 0.99
 """A pixel whose front surface has at least this alpha hides whatever lies behind it."""
 
 
 @dataclass(frozen=True)
 class SplatBuffers:
-    """Per-pixel accumulation of the front surface and the nearest surface behind it.
+    """Per-pixel accumulation: the front surface, and behind soft edges the surface behind.
 
-    cell holds, interleaved so that one splat touches one 32-byte cell: the front's colour
-    premultiplied by weight x alpha and its summed weight x alpha, then the back's colour
-    weighted by weight x alpha and its summed weight x alpha. weight is the front's summed
-    bilinear weight (its coverage); front and back are the two surfaces' inverse depths,
-    0 where there is none.
+    cell: the front's colour weighted by bilinear weight x alpha, and its summed weight (its
+    coverage); front: its inverse depth (0: none). Where a soft point touched a pixel in the
+    frame numbered stamp: clear, the summed weight x (1 - alpha) of the front (its alpha is
+    1 - clear / weight), and back / back_cell, the nearest surface behind it as the front's.
+    Opaque points only touch cell and front, as a plain z-buffer does: the soft state is
+    written by the few soft points alone, and the stamp says which pixels it is valid for.
     """
 
-    cell: np.ndarray  # (H, W, 8) float32
-    weight: np.ndarray  # (H, W) float32
+    cell: np.ndarray  # (H, W, 4) float32
     front: np.ndarray  # (H, W) float32
+    stamp: np.ndarray  # (H, W) int32
+    clear: np.ndarray  # (H, W) float32
     back: np.ndarray  # (H, W) float32
+    back_cell: np.ndarray  # (H, W, 4) float32
 
     @classmethod
     def empty(cls, height: int, width: int) -> SplatBuffers:
         return cls(
-            np.zeros((height, width, _CELL), np.float32),
+            np.zeros((height, width, 4), np.float32),
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width), np.int32),
             np.zeros((height, width), np.float32),
             np.zeros((height, width), np.float32),
-            np.zeros((height, width), np.float32),
+            np.zeros((height, width, 4), np.float32),
         )
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        return self.cell, self.front, self.stamp, self.clear, self.back, self.back_cell
 
 
 _buffers = threading.local()
 
 
-def _scratch(height: int, width: int) -> SplatBuffers:
-    """Per-thread accumulation buffers, reused across frames (no page faults per frame)."""
+def _scratch(height: int, width: int) -> tuple[SplatBuffers, int]:
+    """Per-thread accumulation buffers, reused across frames (no page faults per frame), and
+    the number of this frame in them."""
     key = (height, width)
     if getattr(_buffers, "key", None) != key:
         _buffers.key = key
         _buffers.splats = SplatBuffers.empty(height, width)
-    return _buffers.splats
+        _buffers.frame = 0
+    _buffers.frame = _buffers.frame % 2_000_000_000 + 1
+    return _buffers.splats, _buffers.frame
 
 
-def _splat_view(
-    cloud: PointCloud,
-    view: View,
-    disparity_scale: float,
-    buffers: SplatBuffers,
-    clear: bool = True,
-) -> None:
+def _splat_view(cloud: PointCloud, view: View, disparity_scale: float,
+                buffers: SplatBuffers, frame: int) -> None:
     _splat_kernel(
-        cloud.x, cloud.y, cloud.z, cloud.colour, cloud.alpha,
+        cloud.x, cloud.y, cloud.z, cloud.colour, cloud.alpha, cloud.soft_index,
         np.float32(view.position[0]), np.float32(view.position[1]),
         np.float32(view.position[2]), np.float32(view.focal_px),
         np.float32(view.principal_x_px - 0.5), np.float32(view.principal_y_px - 0.5),
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
-        buffers.cell, buffers.weight, buffers.front, buffers.back, clear,
+        *buffers.arrays(), np.int32(frame),
     )
-
-
-def _splat_new(cloud: PointCloud, view: View, disparity_scale: float) -> SplatBuffers:
-    """Splat into new buffers."""
-    buffers = SplatBuffers.empty(view.height_px, view.width_px)
-    _splat_view(cloud, view, disparity_scale, buffers, clear=False)
-    return buffers
 
 
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
@@ -195,52 +202,60 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     when its front surface is opaque or has a surface behind it; a soft edge over nothing is
     a hole still to fill.
     """
-    buffers = _splat_new(cloud, view, disparity_scale)
+    buffers = SplatBuffers.empty(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, buffers, 1)
     colour = np.empty((view.height_px, view.width_px, 3), np.float32)
     depth = np.empty((view.height_px, view.width_px), np.float32)
     weight = np.empty((view.height_px, view.width_px), np.float32)
-    _normalise_kernel(buffers.cell, buffers.weight, buffers.front, buffers.back,
-                      colour, depth, weight)
-    return Rendering(colour, depth, weight)
+    _normalise_kernel(*buffers.arrays(), np.int32(1), colour, depth, weight)
+    fringe = (buffers.stamp == 1) & (buffers.clear > 0) & (buffers.front > 0)
+    return Rendering(colour, depth, weight, fringe)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _composite(cell, front_weight, has_back, out):
-    """The pixel's colour: the front over the back with premultiplied alpha; a soft front
-    with nothing behind it keeps its own colour. Returns whether the pixel is covered."""
-    alpha_sum = cell[_ALPHA]
-    alpha = min(alpha_sum / front_weight, np.float32(1.0))
-    if has_back and alpha < np.float32(OPAQUE_ALPHA):
-        back_scale = (np.float32(1.0) - alpha) / cell[_BACK + _ALPHA]
-        front_scale = np.float32(1.0) / front_weight
+def _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, out):
+    """Pixel (yy, xx): the front over the back with premultiplied alpha; a soft front with
+    nothing behind it keeps its own colour. Returns whether the pixel is covered."""
+    weight = cell[yy, xx, _WEIGHT]
+    if stamp[yy, xx] != frame or clear[yy, xx] <= 0:  # opaque: the plain z-buffer's case
+        scale = np.float32(1.0) / weight
         for c in range(3):
-            out[c] = cell[c] * front_scale + cell[_BACK + c] * back_scale
+            out[c] = cell[yy, xx, c] * scale
         return True
-    if alpha_sum > np.float32(MIN_SPLAT_WEIGHT * MIN_SPLAT_WEIGHT):
-        scale = np.float32(1.0) / alpha_sum
+    alpha_sum = max(weight - clear[yy, xx], np.float32(0.0))
+    alpha = alpha_sum / weight
+    if back[yy, xx] > 0 and alpha < np.float32(OPAQUE_ALPHA):
+        back_scale = (np.float32(1.0) - alpha) / back_cell[yy, xx, _WEIGHT]
+        front_scale = np.float32(1.0) / weight
         for c in range(3):
-            out[c] = cell[c] * scale
-    else:
-        for c in range(3):
-            out[c] = 0.0
+            out[c] = cell[yy, xx, c] * front_scale + back_cell[yy, xx, c] * back_scale
+        return True
+    scale = np.float32(1.0) / max(alpha_sum, np.float32(MIN_SPLAT_WEIGHT * MIN_SPLAT_WEIGHT))
+    for c in range(3):
+        out[c] = cell[yy, xx, c] * scale
     return alpha >= np.float32(OPAQUE_ALPHA)
 
 
 @numba.njit(cache=True, nogil=True)
-def _normalise_kernel(cell, front_weight, front, back, colour, depth, weight):
+def _normalise_kernel(cell, front, stamp, clear, back, back_cell, frame, colour, depth,
+                      weight):
     height, width = front.shape
     for yy in range(height):
         for xx in range(width):
-            w = front_weight[yy, xx]
             covered = False
-            if w > MIN_SPLAT_WEIGHT:
-                covered = _composite(cell[yy, xx], w, back[yy, xx] > 0, colour[yy, xx])
-                depth[yy, xx] = np.float32(1.0) / front[yy, xx]
+            if front[yy, xx] > 0:
+                covered = _composite(cell, stamp, clear, back, back_cell, frame, yy, xx,
+                                     colour[yy, xx])
+                surface = front[yy, xx]
+                if (stamp[yy, xx] == frame and back[yy, xx] > 0
+                        and clear[yy, xx] > np.float32(0.5) * cell[yy, xx, _WEIGHT]):
+                    surface = back[yy, xx]  # a faint fringe: the depth is the one behind
+                depth[yy, xx] = np.float32(1.0) / surface
             else:
                 for c in range(3):
                     colour[yy, xx, c] = 0.0
                 depth[yy, xx] = np.inf
-            weight[yy, xx] = w if covered else np.float32(0.0)
+            weight[yy, xx] = cell[yy, xx, _WEIGHT] if covered else np.float32(0.0)
 
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
@@ -253,10 +268,10 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
 
     The same passes as render(), with compositing, filling and rounding fused into one.
     """
-    buffers = _scratch(view.height_px, view.width_px)
-    _splat_view(cloud, view, disparity_scale, buffers, clear=False)
+    buffers, number = _scratch(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, buffers, number)
     frame = np.empty((view.height_px, view.width_px, 3), np.uint8)
-    _finish_kernel(buffers.cell, buffers.weight, buffers.front, buffers.back, frame)
+    _finish_kernel(*buffers.arrays(), np.int32(number), frame)
     return frame
 
 
@@ -311,24 +326,21 @@ def _corner(k, x0, y0, fx, fy, width, height):
 
 @numba.njit(cache=True, nogil=True)
 def _splat_kernel(
-    xs, ys, zs, colours, alphas, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
-    cell, front_weight, front, back, clear,
+    xs, ys, zs, colours, alphas, soft_index, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z,
+    crack_inv_z, cell, front, stamp, clear, back, back_cell, frame,
 ):
-    # One pass of two-surface soft z-buffering, then the crack filter. All arithmetic is
-    # float32: float64 promotion made this loop two to three times slower.
+    # Opaque points first, in one pass of soft z-buffering exactly as a plain cloud; then the
+    # few soft points, which keep what lies behind them; then the crack filter. All
+    # arithmetic is float32: float64 promotion made this loop two to three times slower.
+    # cell arrives cleared (new, or left so by the finishing pass).
     height, width = front.shape
     one = np.float32(1.0)
-    if clear:  # render_frame's finishing pass leaves these cleared for the next frame
-        cell[:] = 0.0
-        front_weight[:] = 0.0
-        back[:] = 0.0
     front[:] = 0.0
     cols = np.empty(PROJECT_CHUNK, np.int32)
     rows = np.empty(PROJECT_CHUNK, np.int32)
     frac_x = np.empty(PROJECT_CHUNK, np.float32)
     frac_y = np.empty(PROJECT_CHUNK, np.float32)
     inv_zs = np.empty(PROJECT_CHUNK, np.float32)
-    to_unit = np.float32(1.0 / 255.0)
     count = zs.shape[0]
     for start in range(0, count, PROJECT_CHUNK):
         _project_chunk(
@@ -337,98 +349,150 @@ def _splat_kernel(
         )
         for j in range(min(PROJECT_CHUNK, count - start)):
             x0 = cols[j]
-            if x0 == _OUTSIDE:
+            if x0 == _OUTSIDE or alphas[start + j] < 255:
                 continue
             y0 = rows[j]
             fx = frac_x[j]
             fy = frac_y[j]
             inv_z = inv_zs[j]
             i = start + j
-            a = np.float32(alphas[i]) * to_unit
             r = np.float32(colours[i, 0])
             g = np.float32(colours[i, 1])
             b = np.float32(colours[i, 2])
             if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
                 # Interior: all four pixels exist (the common case, unrolled).
-                _soft_z(cell, front_weight, front, back, y0, x0, (one - fx) * (one - fy),
-                        inv_z, soft_inv_z, a, r, g, b)
-                _soft_z(cell, front_weight, front, back, y0, x0 + 1, fx * (one - fy),
-                        inv_z, soft_inv_z, a, r, g, b)
-                _soft_z(cell, front_weight, front, back, y0 + 1, x0, (one - fx) * fy,
-                        inv_z, soft_inv_z, a, r, g, b)
-                _soft_z(cell, front_weight, front, back, y0 + 1, x0 + 1, fx * fy,
-                        inv_z, soft_inv_z, a, r, g, b)
+                _soft_z(front, cell, y0, x0, (one - fx) * (one - fy), inv_z, soft_inv_z,
+                        r, g, b)
+                _soft_z(front, cell, y0, x0 + 1, fx * (one - fy), inv_z, soft_inv_z,
+                        r, g, b)
+                _soft_z(front, cell, y0 + 1, x0, (one - fx) * fy, inv_z, soft_inv_z,
+                        r, g, b)
+                _soft_z(front, cell, y0 + 1, x0 + 1, fx * fy, inv_z, soft_inv_z, r, g, b)
                 continue
             for k in range(4):  # at the frame's edge: only the corners inside
                 inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
                 if inside:
-                    _soft_z(cell, front_weight, front, back, yy, xx, w, inv_z, soft_inv_z,
-                            a, r, g, b)
-    _clear_cracks(cell, front_weight, front, back, crack_inv_z)
+                    _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b)
+    to_unit = np.float32(1.0 / 255.0)
+    for start in range(0, soft_index.shape[0], PROJECT_CHUNK):
+        chunk = soft_index[start:start + PROJECT_CHUNK]
+        _project_chunk(
+            xs[chunk], ys[chunk], zs[chunk], 0, cam_x, cam_y, cam_z, focal, ppx, ppy,
+            width, height, cols, rows, frac_x, frac_y, inv_zs,
+        )
+        for j in range(chunk.shape[0]):
+            x0 = cols[j]
+            if x0 == _OUTSIDE:
+                continue
+            i = chunk[j]
+            a = np.float32(alphas[i]) * to_unit
+            r = np.float32(colours[i, 0])
+            g = np.float32(colours[i, 1])
+            b = np.float32(colours[i, 2])
+            for k in range(4):
+                inside, yy, xx, w = _corner(k, x0, rows[j], frac_x[j], frac_y[j], width,
+                                            height)
+                if inside:
+                    _soft_layer_z(front, cell, stamp, clear, back, back_cell, frame, yy, xx,
+                                  w, inv_zs[j], soft_inv_z, a, r, g, b)
+    _clear_cracks(front, cell, stamp, clear, back, frame, crack_inv_z,
+                  soft_index.shape[0] > 0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _soft_z(cell, front_weight, front, back, yy, xx, w, inv_z, soft_inv_z, a, r, g, b):
-    """Splat one bilinear corner with two-surface soft z-buffering.
+def _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b):
+    """Splat one bilinear corner of an opaque point with soft z-buffering.
 
-    A point clearly nearer than the pixel's front surface starts a new front (the old one
-    becomes the back), one within soft_inv_z of it blends in, and a farther one goes the same
-    way into the back surface. Fronts are raised with max(), not a branch: which of two
-    blending points is nearer is a coin toss the CPU mispredicts.
+    A point clearly nearer than the pixel's front surface restarts the pixel, one within
+    soft_inv_z of it blends in, and a farther one is hidden. The front is raised with max(),
+    not a branch: which of two blending points is nearer is a coin toss the CPU mispredicts.
+    (Keep front first in the arguments: numba's code for this loop was 50 % slower with the
+    two arrays swapped.)
     """
     if w <= np.float32(MIN_SPLAT_WEIGHT):
         return
-    here = cell[yy, xx]
+    surface = front[yy, xx]
+    if surface < inv_z - soft_inv_z:
+        front[yy, xx] = inv_z
+        cell[yy, xx, 0] = w * r
+        cell[yy, xx, 1] = w * g
+        cell[yy, xx, 2] = w * b
+        cell[yy, xx, _WEIGHT] = w
+    elif surface <= inv_z + soft_inv_z:
+        front[yy, xx] = max(surface, inv_z)
+        cell[yy, xx, 0] += w * r
+        cell[yy, xx, 1] += w * g
+        cell[yy, xx, 2] += w * b
+        cell[yy, xx, _WEIGHT] += w
+
+
+@numba.njit(cache=True, nogil=True)
+def _soft_layer_z(front, cell, stamp, clear, back, back_cell, frame, yy, xx, w, inv_z,
+                  soft_inv_z, a, r, g, b):
+    """Splat one bilinear corner of a soft point (after every opaque one).
+
+    As _soft_z, but a soft point that starts a new front keeps the old front as the pixel's
+    back, and while the front is soft, farther soft points go the same way into the back.
+    """
+    if w <= np.float32(MIN_SPLAT_WEIGHT):
+        return
+    if stamp[yy, xx] != frame:
+        stamp[yy, xx] = frame
+        clear[yy, xx] = 0.0
+        back[yy, xx] = 0.0
     wa = w * a
     surface = front[yy, xx]
     if surface < inv_z - soft_inv_z:
         if surface > 0:
             for c in range(4):
-                here[_BACK + c] = here[c]
+                back_cell[yy, xx, c] = cell[yy, xx, c]
             back[yy, xx] = surface
         front[yy, xx] = inv_z
-        here[0] = wa * r
-        here[1] = wa * g
-        here[2] = wa * b
-        here[_ALPHA] = wa
-        front_weight[yy, xx] = w
+        cell[yy, xx, 0] = wa * r
+        cell[yy, xx, 1] = wa * g
+        cell[yy, xx, 2] = wa * b
+        cell[yy, xx, _WEIGHT] = w
+        clear[yy, xx] = w - wa
     elif surface <= inv_z + soft_inv_z:
         front[yy, xx] = max(surface, inv_z)
-        here[0] += wa * r
-        here[1] += wa * g
-        here[2] += wa * b
-        here[_ALPHA] += wa
-        front_weight[yy, xx] += w
-    else:
+        cell[yy, xx, 0] += wa * r
+        cell[yy, xx, 1] += wa * g
+        cell[yy, xx, 2] += wa * b
+        cell[yy, xx, _WEIGHT] += w
+        clear[yy, xx] += w - wa
+    elif clear[yy, xx] > 0:
         behind = back[yy, xx]
         if behind < inv_z - soft_inv_z:
             back[yy, xx] = inv_z
-            here[_BACK] = wa * r
-            here[_BACK + 1] = wa * g
-            here[_BACK + 2] = wa * b
-            here[_BACK + _ALPHA] = wa
+            back_cell[yy, xx, 0] = wa * r
+            back_cell[yy, xx, 1] = wa * g
+            back_cell[yy, xx, 2] = wa * b
+            back_cell[yy, xx, _WEIGHT] = wa
         elif behind <= inv_z + soft_inv_z:
             back[yy, xx] = max(behind, inv_z)
-            here[_BACK] += wa * r
-            here[_BACK + 1] += wa * g
-            here[_BACK + 2] += wa * b
-            here[_BACK + _ALPHA] += wa
+            back_cell[yy, xx, 0] += wa * r
+            back_cell[yy, xx, 1] += wa * g
+            back_cell[yy, xx, 2] += wa * b
+            back_cell[yy, xx, _WEIGHT] += wa
 
 
 @numba.njit(cache=True, nogil=True)
-def _clear_cracks(cell, front_weight, front, back, crack_inv_z):
+def _clear_cracks(front, cell, stamp, clear, back, frame, crack_inv_z, any_soft):
     """Empty the pixels where background shines through a crack in a magnified foreground:
     two opposite neighbours are nearer by crack_inv_z. They are filled like any hole.
 
     Only solid surfaces count: where the front is a soft edge, the surface behind it is the
     pixel's solid one, so the fringe of an object is never taken for a crack around it."""
     height, width = front.shape
-    solid = np.empty_like(front)
-    for yy in range(height):
-        for xx in range(width):
-            w = front_weight[yy, xx]
-            opaque = w > MIN_SPLAT_WEIGHT and cell[yy, xx, _ALPHA] >= OPAQUE_ALPHA * w
-            solid[yy, xx] = front[yy, xx] if opaque else back[yy, xx]
+    solid = front
+    if any_soft:
+        solid = front.copy()
+        for yy in range(height):
+            for xx in range(width):
+                if stamp[yy, xx] == frame and clear[yy, xx] > 0:
+                    weight = cell[yy, xx, _WEIGHT]
+                    if weight - clear[yy, xx] < OPAQUE_ALPHA * weight:
+                        solid[yy, xx] = back[yy, xx]
     # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
     above = solid[0].copy()
     row = np.empty_like(above)
@@ -445,35 +509,28 @@ def _clear_cracks(cell, front_weight, front, back, crack_inv_z):
                 or (above[xx + 1] > threshold and below[xx - 1] > threshold)
             ):
                 front[yy, xx] = 0.0
-                back[yy, xx] = 0.0
-                front_weight[yy, xx] = 0.0
                 cell[yy, xx, :] = 0.0
         above, row = row, above
 
 
 @numba.njit(cache=True, nogil=True)
-def _finish_kernel(cell, front_weight, front, back, frame):
+def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, image):
     """Composite, round, and give every empty pixel the colour of the farthest covered pixel
-    found along its row and column (a cheap fill from the background side). Leaves the
-    buffers cleared for the next frame; front keeps 0 where a pixel was empty."""
+    found along its row and column (a cheap fill from the background side). Leaves cell
+    cleared for the next frame; front keeps 0 where a pixel was empty."""
     height, width = front.shape
     empty = 0
     pixel = np.empty(3, np.float32)
     for yy in range(height):
         for xx in range(width):
-            w = front_weight[yy, xx]
-            here = cell[yy, xx]
-            if w > MIN_SPLAT_WEIGHT:
-                _composite(here, w, back[yy, xx] > 0, pixel)
+            if front[yy, xx] > 0:
+                _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, pixel)
                 for c in range(3):
-                    frame[yy, xx, c] = min(255, int(pixel[c] + np.float32(0.5)))
+                    image[yy, xx, c] = min(255, int(pixel[c] + np.float32(0.5)))
             else:
-                front[yy, xx] = 0.0
                 empty += 1
-            for c in range(_CELL):
-                here[c] = 0.0
-            front_weight[yy, xx] = 0.0
-            back[yy, xx] = 0.0
+            for c in range(4):
+                cell[yy, xx, c] = 0.0
     if empty == 0:
         return
     for yy in range(height):
@@ -494,7 +551,7 @@ def _finish_kernel(cell, front_weight, front, back, frame):
                     best_y = cy
                     best_x = cx
             for c in range(3):
-                frame[yy, xx, c] = frame[best_y, best_x, c] if best_y >= 0 else 0
+                image[yy, xx, c] = image[best_y, best_x, c] if best_y >= 0 else 0
 
 
 def to_uint8(colour: np.ndarray) -> np.ndarray:
