@@ -11,9 +11,8 @@ The kernels are compiled with numba and release the GIL, so frames render in par
 
 from __future__ import annotations
 
-import functools
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numba
@@ -47,16 +46,20 @@ class PointCloud:
     colour: np.ndarray  # (N, 3) uint8 RGB
     alpha: np.ndarray | None = None
     """(N,) uint8 coverage of each point, 255 = opaque (the default); below 255 only on the
-    soft edge of a foreground layer, whose colour is then its own, un-mixed."""
+    soft edge of a foreground layer, whose colour is then its own, un-mixed. The opaque
+    points come first (the cloud is reordered so): opaque_count of them."""
+    opaque_count: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         if self.alpha is None:
             object.__setattr__(self, "alpha", np.full(self.z.shape[0], 255, np.uint8))
-
-    @functools.cached_property
-    def soft_index(self) -> np.ndarray:
-        """Indices of the points below full alpha, which the renderer splats last."""
-        return np.flatnonzero(self.alpha < 255)
+        soft = self.alpha < 255
+        opaque_count = len(self) - int(soft.sum())
+        if soft[:opaque_count].any():  # opaque points first: the renderer splats them first
+            order = np.concatenate([np.flatnonzero(~soft), np.flatnonzero(soft)])
+            for name in ("x", "y", "z", "colour", "alpha"):
+                object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name)[order]))
+        object.__setattr__(self, "opaque_count", opaque_count)
 
     def __len__(self) -> int:
         return int(self.z.shape[0])
@@ -182,16 +185,19 @@ def _scratch(height: int, width: int) -> tuple[SplatBuffers, int]:
 
 
 def _splat_view(cloud: PointCloud, view: View, disparity_scale: float,
-                buffers: SplatBuffers, frame: int) -> None:
-    _splat_kernel(
-        cloud.x, cloud.y, cloud.z, cloud.colour, cloud.alpha, cloud.soft_index,
+                buffers: SplatBuffers, frame: int) -> np.ndarray:
+    """Splat a view; returns the flat indices of the pixels that soft points touched."""
+    touched = np.empty(4 * (len(cloud) - cloud.opaque_count), np.int64)
+    count = _splat_kernel(
+        cloud.x, cloud.y, cloud.z, cloud.colour, cloud.alpha, cloud.opaque_count,
         np.float32(view.position[0]), np.float32(view.position[1]),
         np.float32(view.position[2]), np.float32(view.focal_px),
         np.float32(view.principal_x_px - 0.5), np.float32(view.principal_y_px - 0.5),
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
-        *buffers.arrays(), np.int32(frame),
+        *buffers.arrays(), np.int32(frame), touched,
     )
+    return touched[:count]
 
 
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
@@ -212,7 +218,7 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     return Rendering(colour, depth, weight, fringe)
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(cache=True, nogil=True)
 def _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, out):
     """Pixel (yy, xx): the front over the back with premultiplied alpha; a soft front with
     nothing behind it keeps its own colour. Returns whether the pixel is covered."""
@@ -269,9 +275,9 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
     The same passes as render(), with compositing, filling and rounding fused into one.
     """
     buffers, number = _scratch(view.height_px, view.width_px)
-    _splat_view(cloud, view, disparity_scale, buffers, number)
+    touched = _splat_view(cloud, view, disparity_scale, buffers, number)
     frame = np.empty((view.height_px, view.width_px, 3), np.uint8)
-    _finish_kernel(*buffers.arrays(), np.int32(number), frame)
+    _finish_kernel(*buffers.arrays(), touched, frame)
     return frame
 
 
@@ -326,8 +332,8 @@ def _corner(k, x0, y0, fx, fy, width, height):
 
 @numba.njit(cache=True, nogil=True)
 def _splat_kernel(
-    xs, ys, zs, colours, alphas, soft_index, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z,
-    crack_inv_z, cell, front, stamp, clear, back, back_cell, frame,
+    xs, ys, zs, colours, alphas, opaque_count, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z,
+    crack_inv_z, cell, front, stamp, clear, back, back_cell, frame, touched,
 ):
     # Opaque points first, in one pass of soft z-buffering exactly as a plain cloud; then the
     # few soft points, which keep what lies behind them; then the crack filter. All
@@ -341,15 +347,14 @@ def _splat_kernel(
     frac_x = np.empty(PROJECT_CHUNK, np.float32)
     frac_y = np.empty(PROJECT_CHUNK, np.float32)
     inv_zs = np.empty(PROJECT_CHUNK, np.float32)
-    count = zs.shape[0]
-    for start in range(0, count, PROJECT_CHUNK):
+    for start in range(0, opaque_count, PROJECT_CHUNK):
         _project_chunk(
             xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
             cols, rows, frac_x, frac_y, inv_zs,
         )
-        for j in range(min(PROJECT_CHUNK, count - start)):
+        for j in range(min(PROJECT_CHUNK, opaque_count - start)):
             x0 = cols[j]
-            if x0 == _OUTSIDE or alphas[start + j] < 255:
+            if x0 == _OUTSIDE:
                 continue
             y0 = rows[j]
             fx = frac_x[j]
@@ -374,17 +379,18 @@ def _splat_kernel(
                 if inside:
                     _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b)
     to_unit = np.float32(1.0 / 255.0)
-    for start in range(0, soft_index.shape[0], PROJECT_CHUNK):
-        chunk = soft_index[start:start + PROJECT_CHUNK]
+    touched_count = 0
+    count = zs.shape[0]
+    for start in range(opaque_count, count, PROJECT_CHUNK):
         _project_chunk(
-            xs[chunk], ys[chunk], zs[chunk], 0, cam_x, cam_y, cam_z, focal, ppx, ppy,
-            width, height, cols, rows, frac_x, frac_y, inv_zs,
+            xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
+            cols, rows, frac_x, frac_y, inv_zs,
         )
-        for j in range(chunk.shape[0]):
+        for j in range(min(PROJECT_CHUNK, count - start)):
             x0 = cols[j]
             if x0 == _OUTSIDE:
                 continue
-            i = chunk[j]
+            i = start + j
             a = np.float32(alphas[i]) * to_unit
             r = np.float32(colours[i, 0])
             g = np.float32(colours[i, 1])
@@ -392,11 +398,17 @@ def _splat_kernel(
             for k in range(4):
                 inside, yy, xx, w = _corner(k, x0, rows[j], frac_x[j], frac_y[j], width,
                                             height)
-                if inside:
-                    _soft_layer_z(front, cell, stamp, clear, back, back_cell, frame, yy, xx,
-                                  w, inv_zs[j], soft_inv_z, a, r, g, b)
-    _clear_cracks(front, cell, stamp, clear, back, frame, crack_inv_z,
-                  soft_index.shape[0] > 0)
+                if inside and w > np.float32(MIN_SPLAT_WEIGHT):
+                    if stamp[yy, xx] != frame:
+                        stamp[yy, xx] = frame
+                        clear[yy, xx] = 0.0
+                        back[yy, xx] = 0.0
+                        touched[touched_count] = yy * width + xx
+                        touched_count += 1
+                    _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_zs[j],
+                                  soft_inv_z, a, r, g, b)
+    _clear_cracks(front, cell, clear, back, touched[:touched_count], crack_inv_z)
+    return touched_count
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -427,19 +439,13 @@ def _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b):
 
 
 @numba.njit(cache=True, nogil=True)
-def _soft_layer_z(front, cell, stamp, clear, back, back_cell, frame, yy, xx, w, inv_z,
-                  soft_inv_z, a, r, g, b):
+def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_inv_z, a, r, g,
+                  b):
     """Splat one bilinear corner of a soft point (after every opaque one).
 
     As _soft_z, but a soft point that starts a new front keeps the old front as the pixel's
     back, and while the front is soft, farther soft points go the same way into the back.
     """
-    if w <= np.float32(MIN_SPLAT_WEIGHT):
-        return
-    if stamp[yy, xx] != frame:
-        stamp[yy, xx] = frame
-        clear[yy, xx] = 0.0
-        back[yy, xx] = 0.0
     wa = w * a
     surface = front[yy, xx]
     if surface < inv_z - soft_inv_z:
@@ -477,28 +483,28 @@ def _soft_layer_z(front, cell, stamp, clear, back, back_cell, frame, yy, xx, w, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _clear_cracks(front, cell, stamp, clear, back, frame, crack_inv_z, any_soft):
+def _clear_cracks(front, cell, clear, back, touched, crack_inv_z):
     """Empty the pixels where background shines through a crack in a magnified foreground:
     two opposite neighbours are nearer by crack_inv_z. They are filled like any hole.
 
     Only solid surfaces count: where the front is a soft edge, the surface behind it is the
     pixel's solid one, so the fringe of an object is never taken for a crack around it."""
     height, width = front.shape
-    solid = front
-    if any_soft:
-        solid = front.copy()
-        for yy in range(height):
-            for xx in range(width):
-                if stamp[yy, xx] == frame and clear[yy, xx] > 0:
-                    weight = cell[yy, xx, _WEIGHT]
-                    if weight - clear[yy, xx] < OPAQUE_ALPHA * weight:
-                        solid[yy, xx] = back[yy, xx]
+    # Where soft points touched, the solid depth stands in for the front while filtering.
+    fronts = np.empty(touched.shape[0], np.float32)
+    for k in range(touched.shape[0]):
+        yy = touched[k] // width
+        xx = touched[k] % width
+        fronts[k] = front[yy, xx]
+        weight = cell[yy, xx, _WEIGHT]
+        if clear[yy, xx] > 0 and weight - clear[yy, xx] < OPAQUE_ALPHA * weight:
+            front[yy, xx] = back[yy, xx]
     # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
-    above = solid[0].copy()
+    above = front[0].copy()
     row = np.empty_like(above)
     for yy in range(1, height - 1):
-        row[:] = solid[yy]
-        below = solid[yy + 1]
+        row[:] = front[yy]
+        below = front[yy + 1]
         for xx in range(1, width - 1):
             threshold = row[xx] + crack_inv_z
             # Opposite neighbour pairs: horizontal, vertical and both diagonals.
@@ -511,26 +517,41 @@ def _clear_cracks(front, cell, stamp, clear, back, frame, crack_inv_z, any_soft)
                 front[yy, xx] = 0.0
                 cell[yy, xx, :] = 0.0
         above, row = row, above
+    for k in range(touched.shape[0]):
+        yy = touched[k] // width
+        xx = touched[k] % width
+        if cell[yy, xx, _WEIGHT] > 0:  # not emptied as a crack
+            front[yy, xx] = fronts[k]
 
 
 @numba.njit(cache=True, nogil=True)
-def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, image):
+def _finish_kernel(cell, front, stamp, clear, back, back_cell, touched, image):
     """Composite, round, and give every empty pixel the colour of the farthest covered pixel
     found along its row and column (a cheap fill from the background side). Leaves cell
     cleared for the next frame; front keeps 0 where a pixel was empty."""
     height, width = front.shape
-    empty = 0
     pixel = np.empty(3, np.float32)
+    for index in touched:  # soft pixels: their composite, premultiplied by the weight
+        yy = index // width
+        xx = index % width
+        weight = cell[yy, xx, _WEIGHT]
+        if front[yy, xx] > 0 and weight > 0 and clear[yy, xx] > 0:
+            _composite(cell, stamp, clear, back, back_cell, stamp[yy, xx], yy, xx, pixel)
+            for c in range(3):
+                cell[yy, xx, c] = pixel[c] * weight
+            clear[yy, xx] = 0.0
+    empty = 0
     for yy in range(height):
         for xx in range(width):
+            here = cell[yy, xx]
             if front[yy, xx] > 0:
-                _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, pixel)
+                scale = np.float32(1.0) / here[_WEIGHT]
                 for c in range(3):
-                    image[yy, xx, c] = min(255, int(pixel[c] + np.float32(0.5)))
+                    image[yy, xx, c] = min(255, int(here[c] * scale + np.float32(0.5)))
             else:
                 empty += 1
             for c in range(4):
-                cell[yy, xx, c] = 0.0
+                here[c] = 0.0
     if empty == 0:
         return
     for yy in range(height):
