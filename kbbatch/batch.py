@@ -252,13 +252,12 @@ def ordered_map(function: Callable, items: list, threads: int) -> Iterator:
 def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
     from kbbatch.images import write_image
+    from kbbatch.review import depth_picture, normalised_disparity
 
-    normalised = disparity / max(float(disparity.max()), 1e-6)
     stem = clip_path.with_suffix("")
     write_image(stem.with_name(stem.name + ".disparity.png"),
-                (normalised * 65535 + 0.5).astype(np.uint16))
-    preview = cv2.applyColorMap((normalised * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
-    write_image(stem.with_name(stem.name + ".depth-preview.png"), preview[..., ::-1])
+                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
+    write_image(stem.with_name(stem.name + ".depth-preview.png"), depth_picture(disparity))
 
 
 def output_names(sources: list[Path]) -> dict[Path, str]:
@@ -423,6 +422,9 @@ def run_folder(
         for source in progress_bar(sources, desc="photos", unit="photo",
                                    disable=not show_progress):
             entry = manifest.entry(source.name) if manifest else None
+            if entry is not None and entry.excluded:
+                results.append(ClipResult(str(source), None, "excluded", 0.0))
+                continue
             output = output_folder / names[source]
             fingerprint = source_fingerprint(source)
             settings = clip_settings(preset, options, entry)

@@ -128,11 +128,67 @@ def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, dept
     sys.exit(1 if len(done) < len(results) else 0)
 
 
+@main.command()
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--manifest", "manifest_path", type=click.Path(dir_okay=False, path_type=Path),
+              default=Path("manifest.json"), show_default=True,
+              help="Manifest to edit (created on the first save).")
+@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True,
+              help="Preset of photos whose entry names none.")
+@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True)
+@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
+              default="auto", show_default=True)
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to listen on; anything but a local one exposes the page.")
+@click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True,
+              help="Port (0: any free one).")
+@click.option("--open", "open_browser", is_flag=True, help="Open the page in a web browser.")
+def review(folder: Path, manifest_path: Path, preset_name: str, planner: str,
+           depth_backend: str, host: str, port: int, open_browser: bool) -> None:
+    """Review and edit every photo's plan in a web page, then save the manifest.
+
+    Render the saved manifest with `kbbatch FOLDER --manifest MANIFEST`.
+    """
+    import logging
+
+    from kbbatch.web.app import ReviewServer, ReviewSession
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
+    preset = _load_preset(preset_name, None, None)
+    options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
+    try:
+        session = ReviewSession(folder, manifest_path, preset, options)
+    except ManifestError as error:
+        raise click.BadParameter(str(error), param_hint="--manifest") from error
+    try:
+        server = ReviewServer(session, host, port)
+    except OSError as error:
+        raise click.ClickException(f"cannot listen on {host}:{port} ({error.strerror or error});"
+                                   " choose another --port") from error
+
+    def ready(url: str) -> None:
+        click.echo(f"kbbatch review: {len(session.photos)} photo(s) of {session.folder} at {url}"
+                   f"\nsaving to {session.manifest_path}; Ctrl-C stops")
+        if open_browser:
+            import webbrowser
+
+            webbrowser.open(url)
+
+    try:
+        server.serve(ready)
+    except KeyboardInterrupt:
+        click.echo("stopped")
+
+
 def _print_summary(report: RunReport) -> None:
     done = [r for r in report.results if r.status == "done"]
     skipped = [r for r in report.results if r.status == "skipped"]
+    excluded = [r for r in report.results if r.status == "excluded"]
     click.echo(f"\n{len(done)} clip(s) made in {report.output_folder}, {len(skipped)} already "
                f"up to date, {len(report.failed)} failed, preset {report.preset}")
+    if excluded:
+        click.echo(f"{len(excluded)} photo(s) excluded by the manifest")
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")

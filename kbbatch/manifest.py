@@ -36,6 +36,10 @@ class ManifestEntry:
         return "start" in self.data
 
     @property
+    def excluded(self) -> bool:
+        return bool(self.data.get("exclude", False))
+
+    @property
     def depth_file(self) -> Path | None:
         depth = self.data.get("depth")
         return (self.manifest.parent / depth).resolve() if depth else None
@@ -90,8 +94,6 @@ def schema() -> dict[str, Any]:
 
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
-    import jsonschema
-
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except OSError as error:
@@ -99,6 +101,13 @@ def load_manifest(path: Path) -> Manifest:
     except json.JSONDecodeError as error:
         raise ManifestError(f"{path}: malformed JSON at line {error.lineno} column "
                             f"{error.colno}: {error.msg}") from error
+    return manifest_from_data(data, Path(path))
+
+
+def manifest_from_data(data: Any, path: Path) -> Manifest:
+    """Validate a parsed manifest document; errors name path, image and field."""
+    import jsonschema
+
     validator = jsonschema.Draft202012Validator(schema())
     errors = sorted(validator.iter_errors(data), key=lambda e: list(e.absolute_path))
     if errors:

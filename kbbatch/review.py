@@ -53,3 +53,14 @@ def contact_sheet(pictures: list[np.ndarray], columns: int = 4) -> np.ndarray:
         rows.append(np.concatenate(padded, axis=1))
     sheet = np.concatenate(rows, axis=0)
     return sheet if math.prod(sheet.shape) else np.zeros((16, 16, 3), np.uint8)
+
+
+def normalised_disparity(disparity: np.ndarray) -> np.ndarray:
+    """Disparity scaled so that the nearest surface is 1."""
+    return disparity / max(float(disparity.max()), 1e-6)
+
+
+def depth_picture(disparity: np.ndarray) -> np.ndarray:
+    """Disparity as an RGB colour map (near bright, far dark), for people to judge depth."""
+    levels = (normalised_disparity(disparity) * 255).astype(np.uint8)
+    return cv2.applyColorMap(levels, cv2.COLORMAP_INFERNO)[..., ::-1]

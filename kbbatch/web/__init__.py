@@ -1,0 +1,1 @@
+"""The local web page of `kbbatch review` (server in app.py, page in static/)."""

@@ -1,0 +1,496 @@
+"""`kbbatch review`: a local page to review and edit every photo's plan, then save the manifest.
+
+The session plans the folder's photos in one background thread (cached on disk per photo,
+preset and manifest entry), renders short low-resolution preview clips on demand through the
+same `make_clip` as a batch (cached per plan), and writes the manifest atomically after
+validating it. It serves only the folder's own photos, the page's files and the previews it
+rendered; every POST needs the session's token, and every request must name a local host.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import secrets
+import shlex
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+from flask import Flask, Response, jsonify, request, send_file
+from werkzeug.exceptions import HTTPException
+from werkzeug.serving import make_server
+
+from kbbatch.batch import ClipOptions, apply_entry, make_clip, resize_to, working_depth
+from kbbatch.camera import working_size
+from kbbatch.depth import cache as depth_cache
+from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
+from kbbatch.manifest import (
+    ManifestEntry,
+    ManifestError,
+    load_manifest,
+    manifest_from_data,
+    plan_to_entry,
+    write_manifest,
+)
+from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
+from kbbatch.review import depth_picture
+from planners import PlanRequest, get_planner
+
+STATIC_FOLDER = Path(__file__).parent / "static"
+TOKEN_HEADER = "X-KBBatch-Token"
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "[::1]")
+
+PREVIEW_LONG_SIDE_PX = 480
+"""Long side of a preview clip: enough to judge a move, a few seconds to render."""
+PREVIEW_MAX_DURATION_S = 2.0
+PREVIEW_FPS = 15.0
+PREVIEW_THREADS = 2
+JPEG_QUALITY = 88
+PICTURES_KEPT = 64
+"""Encoded photos and depth maps kept in memory (most recently used)."""
+REVIEW_CACHE_VERSION = 1
+"""Bump when a change to planning or rendering changes cached plans or previews."""
+
+log = logging.getLogger(__name__)
+
+
+class RequestError(Exception):
+    """A request the session refuses; becomes a JSON answer with this status."""
+
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclass
+class PhotoState:
+    path: Path
+    status: str = "pending"  # pending, ready or failed
+    error: str | None = None
+    width_px: int | None = None
+    height_px: int | None = None
+    auto: dict[str, Any] | None = None  # the automatic plan as a manifest entry (source px)
+
+
+def review_cache_dir() -> Path:
+    return depth_cache.cache_dir() / "review"
+
+
+def _digest(settings: dict[str, Any]) -> str:
+    text = json.dumps(settings | {"version": REVIEW_CACHE_VERSION}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+class ReviewSession:
+    """The folder, the manifest being edited, the plans and previews, for one server run."""
+
+    def __init__(self, folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions
+                 ) -> None:
+        self.folder = Path(folder).resolve()
+        self.manifest_path = Path(manifest_path).absolute()
+        self.preset = preset
+        self.options = options
+        self.token = secrets.token_urlsafe(32)
+        self.entries = self._manifest_on_disk()
+        # Only files that really lie inside the folder: a symlink pointing out is not served.
+        self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
+                       if p.resolve().is_relative_to(self.folder)}
+        self._lock = threading.Lock()
+        self._save_lock = threading.Lock()
+        self._key_locks: dict[str, threading.Lock] = {}
+        self._hashes: dict[tuple[str, int, int], str] = {}
+        self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kbbatch-plan")
+
+    # -- the manifest ----------------------------------------------------------------------
+
+    def _manifest_on_disk(self) -> dict[str, dict[str, Any]]:
+        """Entries of the manifest file as it is now (ManifestError if it is invalid)."""
+        if not self.manifest_path.exists():
+            return {}
+        manifest = load_manifest(self.manifest_path)
+        return {name: entry.data for name, entry in manifest.entries.items()}
+
+    def render_command(self) -> str:
+        command = ["kbbatch", str(self.folder), "--manifest", str(self.manifest_path)]
+        if self.preset.name != "slideshow":
+            command += ["--preset", self.preset.name]
+        return shlex.join(command)
+
+    def save(self, changes: Any) -> dict[str, Any]:
+        """Apply the page's changed entries (None removes one) to the manifest on disk.
+
+        Entries for photos that are not in the folder are kept; nothing is written unless the
+        whole manifest validates and every crop fits its photo and preset.
+        """
+        if not isinstance(changes, dict):
+            raise RequestError(400, "'entries' must be an object of photo name -> entry or null")
+        with self._save_lock:  # one read-modify-write of the file at a time
+            return self._save(changes)
+
+    def _save(self, changes: dict[str, Any]) -> dict[str, Any]:
+        try:
+            merged = self._manifest_on_disk()
+        except ManifestError as error:
+            raise RequestError(409, f"the manifest on disk is not valid, not overwritten: "
+                                    f"{error}") from error
+        for name, entry in changes.items():
+            self._photo(name)
+            if entry is None:
+                merged.pop(name, None)
+            else:
+                merged[name] = entry
+        document = {"version": 1, "images": merged}
+        try:
+            manifest = manifest_from_data(document, self.manifest_path)
+            for name in changes:
+                if changes[name] is not None:
+                    self._settings(name, changes[name])
+                    self._checked_plan(manifest.entries[name])
+        except ManifestError as error:
+            raise RequestError(400, str(error)) from error
+        write_manifest(self.manifest_path, merged)
+        with self._lock:
+            self.entries = merged
+        return {"manifest": str(self.manifest_path), "command": self.render_command(),
+                "entries": len(merged)}
+
+    def _checked_plan(self, entry: ManifestEntry) -> dict[str, Any] | None:
+        """The entry's crops in source px, checked against the photo and its preset."""
+        if not entry.has_crops:
+            return None
+        preset, _ = self._settings(entry.image, entry.data)
+        width, height = self._size(entry.image)
+        plan = entry.plan(width, height, width, preset.aspect, preset.easing)
+        return plan_to_entry(plan, width, width)
+
+    # -- photos and plans ------------------------------------------------------------------
+
+    def _photo(self, name: Any) -> PhotoState:
+        if not isinstance(name, str) or name not in self.photos:
+            raise RequestError(404, f"no photo {name!r} in {self.folder}")
+        return self.photos[name]
+
+    def _settings(self, name: str, data: dict[str, Any] | None) -> tuple[Preset, ClipOptions]:
+        if not data:
+            return self.preset, self.options
+        entry = ManifestEntry(name, data, self.manifest_path)
+        try:
+            return apply_entry(entry, self.preset, self.options)
+        except ManifestError as error:
+            raise RequestError(400, str(error)) from error
+
+    def _file_hash(self, path: Path) -> str:
+        stat = path.stat()
+        key = (str(path), stat.st_mtime_ns, stat.st_size)
+        if key not in self._hashes:
+            self._hashes[key] = depth_cache.file_hash(path)
+        return self._hashes[key]
+
+    def _key_lock(self, key: str) -> threading.Lock:
+        with self._lock:
+            return self._key_locks.setdefault(key, threading.Lock())
+
+    def _size(self, name: str) -> tuple[int, int]:
+        state = self.photos[name]
+        if state.width_px is None:
+            try:
+                self.auto_plan(name, None)
+            except ImageReadError as error:
+                raise RequestError(422, str(error)) from error
+        return state.width_px, state.height_px
+
+    def auto_plan(self, name: str, data: dict[str, Any] | None) -> dict[str, Any]:
+        """The automatic plan for a photo under an entry's preset, planner and depth (cached)."""
+        state = self._photo(name)
+        preset, options = self._settings(name, data)
+        key = _digest({"photo": self._file_hash(state.path), "preset": asdict(preset),
+                       "planner": options.planner, "depth": asdict(options.depth)})
+        path = review_cache_dir() / "plans" / f"{key}.json"
+        with self._key_lock(key):
+            try:
+                result = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                result = self._compute_plan(state.path, preset, options)
+                with atomic_output(path, ".json") as temp_path:
+                    temp_path.write_text(json.dumps(result), encoding="utf-8")
+        state.width_px, state.height_px = result["width_px"], result["height_px"]
+        return result["entry"]
+
+    @staticmethod
+    def _compute_plan(source: Path, preset: Preset, options: ClipOptions) -> dict[str, Any]:
+        photo = read_image(source)
+        working, _, depth = working_depth(photo, source, options)
+        plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
+        return {"entry": plan_to_entry(plan, photo.shape[1], working.shape[1]),
+                "width_px": photo.shape[1], "height_px": photo.shape[0]}
+
+    def start_planning(self) -> None:
+        """Plan every photo in the background, in name order."""
+        for name in self.photos:
+            self._worker.submit(self._plan_in_background, name)
+
+    def _plan_in_background(self, name: str) -> None:
+        state = self.photos[name]
+        try:
+            state.auto = self.auto_plan(name, self.entries.get(name))
+            state.status = "ready"
+        except (ImageReadError, ManifestError) as error:
+            state.status, state.error = "failed", str(error)
+        except RequestError as error:
+            state.status, state.error = "failed", error.message
+        except Exception as error:  # one photo must never stop the others
+            log.exception("planning %s failed", name)
+            state.status, state.error = "failed", f"{name}: {type(error).__name__}: {error}"
+
+    def stop(self) -> None:
+        self._worker.shutdown(wait=False, cancel_futures=True)
+
+    def photo_json(self, name: str) -> dict[str, Any]:
+        state = self.photos[name]
+        entry = self.entries.get(name)
+        result: dict[str, Any] = {
+            "name": name, "status": state.status, "error": state.error,
+            "width_px": state.width_px, "height_px": state.height_px, "entry": entry,
+            "auto": state.auto, "excluded": bool(entry and entry.get("exclude")),
+            "source": "auto", "plan": state.auto,
+        }
+        try:
+            preset, _ = self._settings(name, entry)
+        except RequestError as error:
+            return result | {"status": "failed", "error": error.message}
+        result |= {"preset": preset.name, "aspect": preset.aspect,
+                   "duration_s": preset.duration_s, "easing": preset.easing}
+        if entry and "start" in entry and state.width_px is not None:
+            try:
+                result["plan"] = self._checked_plan(ManifestEntry(name, entry,
+                                                                  self.manifest_path))
+                result["source"] = "manifest"
+            except ManifestError as error:
+                result |= {"status": "failed", "error": str(error)}
+        return result
+
+    def overview(self) -> dict[str, Any]:
+        photos = [self.photo_json(name) for name in self.photos]
+        presets = {name: load_preset(name) for name in builtin_names()}
+        presets[self.preset.name] = self.preset
+        return {
+            "folder": str(self.folder), "manifest": str(self.manifest_path),
+            "command": self.render_command(), "default_preset": self.preset.name,
+            "presets": {name: {"aspect": p.aspect, "duration_s": p.duration_s,
+                               "easing": p.easing, "width_px": p.width_px,
+                               "height_px": p.height_px} for name, p in presets.items()},
+            "progress": {"done": sum(p["status"] != "pending" for p in photos),
+                         "total": len(photos)},
+            "photos": photos,
+        }
+
+    # -- pictures and previews -------------------------------------------------------------
+
+    def picture(self, name: str, kind: str) -> bytes:
+        """The photo ('image', JPEG) or its depth map ('depth', PNG) at the working size."""
+        state = self._photo(name)
+        key = (name, kind, self._file_hash(state.path))
+        with self._lock:
+            if key in self._images:
+                self._images.move_to_end(key)
+                return self._images[key]
+        photo = read_image(state.path)
+        if kind == "image":
+            picture = resize_to(photo, *working_size(photo.shape[1], photo.shape[0]))
+            ok, data = cv2.imencode(".jpg", picture[..., ::-1],
+                                    [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        else:
+            _, options = self._settings(name, self.entries.get(name))
+            _, depth_result, _ = working_depth(photo, state.path, options)
+            ok, data = cv2.imencode(".png", depth_picture(depth_result.disparity)[..., ::-1])
+        if not ok:
+            raise RequestError(500, f"{name}: the picture could not be encoded")
+        with self._lock:
+            self._images[key] = data.tobytes()
+            while len(self._images) > PICTURES_KEPT:
+                self._images.popitem(last=False)
+        return data.tobytes()
+
+    def preview_preset(self, preset: Preset) -> Preset:
+        """The entry's preset made small and short: same aspect, a few seconds to render."""
+        scale = PREVIEW_LONG_SIDE_PX / max(preset.width_px, preset.height_px)
+        return with_overrides(
+            preset, width_px=2 * round(preset.width_px * scale / 2),
+            height_px=2 * round(preset.height_px * scale / 2),
+            duration_s=min(preset.duration_s, PREVIEW_MAX_DURATION_S),
+            fps=min(preset.fps, PREVIEW_FPS), codec="libx264", pix_fmt="yuv420p", crf=28,
+            encoder_preset="veryfast",
+        )
+
+    def preview(self, name: str, data: Any) -> str:
+        """Render (or find cached) the preview clip of a photo under an edited entry; its key."""
+        state = self._photo(name)
+        if not isinstance(data, dict):
+            raise RequestError(400, "'entry' must be a manifest entry object")
+        try:
+            entry = manifest_from_data({"version": 1, "images": {name: data}},
+                                       self.manifest_path).entries[name]
+            preset, options = self._settings(name, data)
+            self._checked_plan(entry)
+            preset = self.preview_preset(preset)
+        except (ManifestError, PresetError) as error:
+            raise RequestError(400, str(error)) from error
+        # The preview preset already carries the entry's preset and duration.
+        clip_data = {k: v for k, v in data.items() if k not in ("preset", "duration_s")}
+        key = _digest({"photo": self._file_hash(state.path), "preset": asdict(preset),
+                       "options": asdict(replace(options, threads=1)), "entry": clip_data})
+        path = self.preview_path(key)
+        with self._key_lock(key):
+            if not path.is_file():
+                clip_entry = ManifestEntry(name, clip_data, self.manifest_path)
+                result = make_clip(state.path, path, preset,
+                                   replace(options, threads=PREVIEW_THREADS),
+                                   show_progress=False, entry=clip_entry)
+                if result.status != "done":
+                    if result.detail:
+                        log.error("preview of %s failed:\n%s", name, result.detail)
+                    raise RequestError(422, result.error or f"{name}: preview failed")
+        return key
+
+    @staticmethod
+    def preview_path(key: str) -> Path:
+        return review_cache_dir() / "previews" / f"{key}.mp4"
+
+
+def _json_body() -> dict[str, Any]:
+    data = request.get_json(silent=True)
+    if not isinstance(data, dict):
+        raise RequestError(400, "the request body must be a JSON object")
+    return data
+
+
+def _host_name(host_header: str | None) -> str:
+    """'127.0.0.1:8765' -> '127.0.0.1', '[::1]:8765' -> '[::1]'."""
+    host = host_header or ""
+    return host if host.endswith("]") or ":" not in host else host.rsplit(":", 1)[0]
+
+
+def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = LOCAL_HOSTS
+               ) -> Flask:
+    """The Flask application over one review session.
+
+    Requests must name one of allowed_hosts (None: any, for a server exposed on purpose with
+    --host), so that a web page elsewhere cannot reach it through DNS rebinding.
+    """
+    app = Flask(__name__, static_folder=str(STATIC_FOLDER), static_url_path="/static")
+    app.json.sort_keys = False
+    app.url_map.merge_slashes = False  # '//' is refused, not redirected
+
+    @app.before_request
+    def guard() -> None:
+        if allowed_hosts and _host_name(request.host) not in allowed_hosts:
+            raise RequestError(403, f"host {request.host!r} is not served (DNS rebinding?)")
+        if request.method not in ("GET", "HEAD", "OPTIONS"):
+            sent = request.headers.get(TOKEN_HEADER, "")
+            if not secrets.compare_digest(sent.encode(), session.token.encode()):
+                raise RequestError(403, f"missing or wrong {TOKEN_HEADER} header")
+
+    @app.errorhandler(RequestError)
+    def refused(error: RequestError) -> tuple[Response, int]:
+        return jsonify(error=error.message), error.status
+
+    @app.errorhandler(HTTPException)
+    def http_error(error: HTTPException) -> tuple[Response, int]:
+        return jsonify(error=f"{error.name}: {error.description}"), error.code or 500
+
+    @app.errorhandler(Exception)
+    def unexpected(error: Exception) -> tuple[Response, int]:
+        log.exception("request %s %s failed", request.method, request.path)
+        return jsonify(error=f"internal error ({type(error).__name__}); see the server log"), 500
+
+    @app.get("/")
+    def index() -> Response:
+        page = (STATIC_FOLDER / "index.html").read_text(encoding="utf-8")
+        page = page.replace("__KBBATCH_TOKEN__", session.token)
+        response = Response(page, mimetype="text/html")
+        response.headers["Cache-Control"] = "no-store"
+        return response
+
+    @app.get("/api/photos")
+    def photos() -> Response:
+        return jsonify(session.overview())
+
+    @app.get("/api/photos/<name>/image")
+    def image(name: str) -> Response:
+        return _picture(name, "image", "image/jpeg")
+
+    @app.get("/api/photos/<name>/depth")
+    def depth(name: str) -> Response:
+        return _picture(name, "depth", "image/png")
+
+    def _picture(name: str, kind: str, mimetype: str) -> Response:
+        try:
+            return Response(session.picture(name, kind), mimetype=mimetype)
+        except ImageReadError as error:
+            raise RequestError(422, str(error)) from error
+
+    @app.post("/api/auto-plan")
+    def auto_plan() -> Response:
+        body = _json_body()
+        data = body.get("entry") or None
+        if data is not None and not isinstance(data, dict):
+            raise RequestError(400, "'entry' must be a manifest entry object")
+        try:
+            plan = session.auto_plan(body.get("name"), data)
+        except ImageReadError as error:
+            raise RequestError(422, str(error)) from error
+        return jsonify(plan=plan)
+
+    @app.post("/api/preview")
+    def preview() -> Response:
+        body = _json_body()
+        key = session.preview(body.get("name"), body.get("entry"))
+        return jsonify(url=f"/api/previews/{key}.mp4")
+
+    @app.get("/api/previews/<key>.mp4")
+    def preview_file(key: str) -> Response:
+        if len(key) != 32 or any(c not in "0123456789abcdef" for c in key):
+            raise RequestError(404, "no such preview")
+        path = session.preview_path(key)
+        if not path.is_file():
+            raise RequestError(404, "no such preview (render it with POST /api/preview)")
+        return send_file(path, mimetype="video/mp4", conditional=True)
+
+    @app.post("/api/save")
+    def save() -> Response:
+        return jsonify(session.save(_json_body().get("entries")))
+
+    return app
+
+
+class ReviewServer:
+    """The threaded HTTP server of a session, on host:port (port 0: any free port)."""
+
+    def __init__(self, session: ReviewSession, host: str = "127.0.0.1", port: int = 0) -> None:
+        hosts = LOCAL_HOSTS if host in LOCAL_HOSTS else None
+        self.session = session
+        self.server = make_server(host, port, create_app(session, hosts), threaded=True)
+        self.port = self.server.server_port
+        self.url = f"http://{host if host != '0.0.0.0' else '127.0.0.1'}:{self.port}/"
+
+    def serve(self, ready: Callable[[str], None] | None = None) -> None:
+        self.session.start_planning()
+        if ready:
+            ready(self.url)
+        try:
+            self.server.serve_forever()
+        finally:
+            self.session.stop()
+
+    def shutdown(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()

@@ -1,0 +1,310 @@
+"""`kbbatch review` over real HTTP: plans, pictures, previews, save, bad requests, traversal."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from kbbatch.batch import ClipOptions, run_folder
+from kbbatch.cli import main
+from kbbatch.depth import DepthOptions
+from kbbatch.encode import probe
+from kbbatch.images import write_image
+from kbbatch.manifest import load_manifest
+from kbbatch.presets import load_preset, with_overrides
+from tests.conftest import textured_image
+from tests.reviewserver import running_server
+
+SIZES = {"wide.png": (240, 360), "tall.png": (300, 200)}
+OTHER_ENTRY = {"duration_s": 1.5, "planner": "center"}
+OPTIONS = ClipOptions(depth=DepthOptions(backend="ramp"), threads=1)
+
+
+@pytest.fixture
+def folder(tmp_path) -> Path:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for seed, (name, (height, width)) in enumerate(SIZES.items()):
+        write_image(photos / name, textured_image(height, width, seed))
+    (tmp_path / "secret.txt").write_text("top secret")
+    write_image(tmp_path / "outside.png", textured_image(100, 100, 9))
+    os.symlink(tmp_path / "outside.png", photos / "link.png")
+    return photos
+
+
+@pytest.fixture
+def manifest(tmp_path) -> Path:
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps({"version": 1, "images": {"gone.jpg": OTHER_ENTRY}}))
+    return path
+
+
+@pytest.fixture
+def preset():
+    return with_overrides(load_preset("preview"), duration_s=0.6, fps=10.0)
+
+
+@pytest.fixture
+def served(folder, manifest, preset):
+    with running_server(folder, manifest, preset, OPTIONS) as server:
+        yield server
+
+
+def crop(center_x: float, center_y: float, width: float, aspect: float = 16 / 9) -> dict:
+    return {"center_x": center_x, "center_y": center_y, "width": width,
+            "height": round(width / aspect, 2)}
+
+
+EDITED = {"units": "px", "start": crop(180, 120, 320), "end": crop(120, 90, 200),
+          "easing": "linear"}
+
+
+def test_photos_come_with_plans_computed_in_the_background(served):
+    overview = served.wait_planned()
+    photos = {p["name"]: p for p in overview["photos"]}
+    assert set(photos) == set(SIZES)  # the symlink pointing outside is not served
+    assert overview["progress"] == {"done": 2, "total": 2}
+    for name, (height, width) in SIZES.items():
+        photo = photos[name]
+        assert photo["status"] == "ready" and photo["source"] == "auto"
+        assert (photo["width_px"], photo["height_px"]) == (width, height)
+        for field in ("start", "end"):
+            c = photo["plan"][field]
+            assert c["width"] / c["height"] == pytest.approx(16 / 9, rel=0.02)
+            assert c["center_x"] - c["width"] / 2 >= -0.5
+            assert c["center_x"] + c["width"] / 2 <= width + 0.5
+            assert c["center_y"] + c["height"] / 2 <= height + 0.5
+        assert photo["plan"]["end"]["width"] < photo["plan"]["start"]["width"]  # zoom in
+    assert overview["command"].startswith("kbbatch ") and "--manifest" in overview["command"]
+
+
+def test_page_and_its_files_are_served_with_the_token(served):
+    page = served.get("/")
+    assert page.status == 200
+    assert served.session.token.encode() in page.body
+    for name, kind in (("app.js", "javascript"), ("style.css", "css")):
+        reply = served.get(f"/static/{name}")
+        assert reply.status == 200 and kind in reply.headers["content-type"]
+    # Nothing is loaded from elsewhere (the SVG namespace is a name, never fetched).
+    for path in ("/", "/static/app.js", "/static/style.css"):
+        text = served.get(path).body.replace(b"http://www.w3.org/2000/svg", b"")
+        assert b"http:" not in text and b"https:" not in text and b"//cdn" not in text
+
+
+def test_photo_and_depth_pictures_at_the_working_size(served):
+    for kind, mimetype in (("image", "image/jpeg"), ("depth", "image/png")):
+        reply = served.get(f"/api/photos/tall.png/{kind}")
+        assert reply.status == 200 and reply.headers["content-type"] == mimetype
+        picture = cv2.imdecode(np.frombuffer(reply.body, np.uint8), cv2.IMREAD_COLOR)
+        assert picture.shape[:2] == (1024, 683)
+    depth = cv2.imdecode(np.frombuffer(served.get("/api/photos/tall.png/depth").body,
+                                       np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert depth[-20:].mean() > depth[:20].mean() + 20  # ramp: the bottom is nearer, brighter
+
+
+def test_preview_is_rendered_small_once_and_cached(served):
+    reply = served.post("/api/preview", {"name": "wide.png", "entry": EDITED})
+    assert reply.status == 200, reply.body
+    url = reply.json()["url"]
+    clip = served.session.preview_path(url.rsplit("/", 1)[1].removesuffix(".mp4"))
+    info = probe(clip)
+    assert (info.width_px, info.height_px) == (480, 270)
+    assert info.codec == "h264" and info.fps == pytest.approx(10.0)
+    assert info.duration_s == pytest.approx((2 * 6 - 2) / 10.0, abs=0.05)  # 0.6 s forward, back
+    modified = clip.stat().st_mtime_ns
+    video = served.get(url)
+    assert video.status == 200 and video.headers["content-type"] == "video/mp4"
+    assert video.body == clip.read_bytes()
+    partial = served.get(url, Range="bytes=0-99")  # <video> seeks with ranges
+    assert partial.status == 206 and len(partial.body) == 100
+    again = served.post("/api/preview", {"name": "wide.png", "entry": EDITED})
+    assert again.json()["url"] == url and clip.stat().st_mtime_ns == modified
+    moved = EDITED | {"end": crop(240, 150, 200)}
+    assert served.post("/api/preview", {"name": "wide.png", "entry": moved}).json()["url"] != url
+
+
+def test_auto_plan_under_another_preset_keeps_its_aspect(served):
+    reply = served.post("/api/auto-plan", {"name": "wide.png", "entry": {"preset": "square"}})
+    assert reply.status == 200
+    plan = reply.json()["plan"]
+    assert plan["start"]["width"] == pytest.approx(plan["start"]["height"], rel=0.02)
+
+
+def test_save_writes_the_manifest_keeping_other_entries(served, folder, manifest, preset):
+    reply = served.post("/api/save", {"entries": {"wide.png": EDITED,
+                                                  "tall.png": {"exclude": True}}})
+    assert reply.status == 200, reply.body
+    assert reply.json()["manifest"] == str(manifest)
+    assert f"--manifest {manifest}" in reply.json()["command"]
+    saved = load_manifest(manifest)
+    assert saved.entry("gone.jpg").data == OTHER_ENTRY  # a photo not in the folder: kept
+    assert saved.entry("wide.png").data == EDITED
+    assert saved.entry("tall.png").excluded
+    assert not list(manifest.parent.glob(".manifest.*"))  # no temporary file left
+    photos = {p["name"]: p for p in served.get("/api/photos").json()["photos"]}
+    assert photos["wide.png"]["source"] == "manifest" and photos["tall.png"]["excluded"]
+    # Removing an entry (null) takes it out of the manifest again.
+    assert served.post("/api/save", {"entries": {"tall.png": None}}).status == 200
+    assert load_manifest(manifest).entry("tall.png") is None
+
+    report = run_folder(folder, manifest.parent / "out", preset, OPTIONS, show_progress=False,
+                        manifest=load_manifest(manifest))
+    by_name = {Path(r.source).name: r for r in report.results}
+    assert by_name["wide.png"].status == "done"
+    assert by_name["wide.png"].plan["planner"] == "manifest"
+
+
+def test_an_excluded_photo_is_left_out_of_the_batch(served, folder, manifest, preset):
+    assert served.post("/api/save", {"entries": {"tall.png": {"exclude": True}}}).status == 200
+    report = run_folder(folder, manifest.parent / "out", preset, OPTIONS, show_progress=False,
+                        manifest=load_manifest(manifest))
+    by_name = {Path(r.source).name: r for r in report.results}
+    assert by_name["tall.png"].status == "excluded"
+    assert not (manifest.parent / "out" / "tall.mp4").exists()
+
+
+BAD_POSTS = [
+    ("/api/save", {"entries": {"wide.png": EDITED}}, None, 403, "X-KBBatch-Token"),
+    ("/api/save", {"entries": {"wide.png": EDITED}}, "wrong", 403, "X-KBBatch-Token"),
+    ("/api/preview", {"name": "wide.png", "entry": {}}, None, 403, "X-KBBatch-Token"),
+    ("/api/save", [1, 2], "session", 400, "JSON object"),
+    ("/api/save", {"entries": [1]}, "session", 400, "'entries' must be"),
+    ("/api/save", {"entries": {"nope.jpg": {}}}, "session", 404, "no photo 'nope.jpg'"),
+    ("/api/save", {"entries": {"wide.png": EDITED | {"start": crop(10, 10, -5)}}}, "session",
+     400, "field 'start.height'"),
+    ("/api/save", {"entries": {"wide.png": {"start": crop(180, 120, 320)}}}, "session", 400,
+     "'end' is a dependency of 'start'"),
+    ("/api/save", {"entries": {"wide.png": {"colour": "red"}}}, "session", 400,
+     "'colour' was unexpected"),
+    ("/api/save", {"entries": {"wide.png": EDITED | {"end": crop(350, 120, 200)}}}, "session",
+     400, "outside"),
+    ("/api/save", {"entries": {"wide.png": EDITED | {"end": crop(120, 90, 200, 1.0)}}},
+     "session", 400, "aspect"),
+    ("/api/save", {"entries": {"wide.png": {"preset": "nope"}}}, "session", 400,
+     "unknown preset 'nope'"),
+    ("/api/preview", {"name": "wide.png", "entry": "x"}, "session", 400, "'entry' must be"),
+    ("/api/preview", {"name": "../secret.txt", "entry": {}}, "session", 404, "no photo"),
+    ("/api/preview", {"name": "wide.png", "entry": {"duration_s": -1}}, "session", 400,
+     "duration_s"),
+    ("/api/auto-plan", {"name": ["wide.png"]}, "session", 404, "no photo"),
+]
+
+
+@pytest.mark.parametrize(("path", "data", "token", "status", "message"), BAD_POSTS)
+def test_bad_requests_get_a_4xx_message_and_change_nothing(served, manifest, path, data, token,
+                                                           status, message):
+    before = manifest.read_bytes()
+    reply = served.post(path, data, token=token)
+    assert reply.status == status
+    assert reply.headers["content-type"] == "application/json"
+    assert message in reply.json()["error"]
+    assert b"Traceback" not in reply.body
+    assert manifest.read_bytes() == before
+
+
+def test_malformed_bodies_and_foreign_hosts_are_refused(served, manifest):
+    before = manifest.read_bytes()
+    token = {"X-KBBatch-Token": served.session.token, "Content-Type": "application/json"}
+    garbled = served.request("POST", "/api/save", b"{not json", token)
+    assert garbled.status == 400 and "JSON object" in garbled.json()["error"]
+    rebinding = served.request("GET", "/api/photos", headers={"Host": "evil.example:80"})
+    assert rebinding.status == 403 and "not served" in rebinding.json()["error"]
+    unknown = served.get("/api/nothing")
+    assert unknown.status == 404 and "error" in unknown.json()
+    wrong_method = served.request("DELETE", "/api/photos", headers=token)
+    assert wrong_method.status == 405 and "error" in wrong_method.json()
+    assert manifest.read_bytes() == before
+
+
+TRAVERSALS = [
+    "/api/photos/..%2fsecret.txt/image",
+    "/api/photos/..%2F..%2Fsecret.txt/image",
+    "/api/photos/%2e%2e%2fsecret.txt/image",
+    "/api/photos/../secret.txt/image",
+    "/api/photos/secret.txt/image",
+    "/api/photos/link.png/image",  # a symlink in the folder pointing outside it
+    "/api/photos/link.png/depth",
+    "/static/../secret.txt",
+    "/static/..%2fsecret.txt",
+    "/static/..%2f..%2fphotos%2fwide.png",
+    "/static/%2e%2e/%2e%2e/secret.txt",
+    "/static/..%5capp.py",
+    "/static/%2fetc%2fpasswd",
+    "/api/previews/..%2f..%2fsecret.txt.mp4",
+    "/api/previews/0123456789abcdef0123456789abcdef.mp4",
+    "/..%2f..%2fsecret.txt",
+]
+
+
+@pytest.mark.parametrize("path", TRAVERSALS)
+def test_only_files_inside_the_folder_are_served(served, tmp_path, path):
+    reply = served.get(path)
+    assert 400 <= reply.status < 500
+    assert b"top secret" not in reply.body
+    assert reply.body != (tmp_path / "outside.png").read_bytes()
+    assert b"root:" not in reply.body
+    assert reply.headers["content-type"] == "application/json"
+
+
+def test_a_manifest_broken_on_disk_is_not_overwritten(served, manifest):
+    manifest.write_text('{"version": 1, "images": {"wide.png": {"start": 3}}}')
+    before = manifest.read_bytes()
+    reply = served.post("/api/save", {"entries": {"wide.png": EDITED}})
+    assert reply.status == 409 and "not overwritten" in reply.json()["error"]
+    assert manifest.read_bytes() == before
+
+
+def test_cli_refuses_an_invalid_manifest_naming_it(tmp_path, folder):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"images": {"wide.png": {"easing": "bouncy"}}}')
+    result = CliRunner().invoke(main, ["review", str(folder), "--manifest", str(bad)])
+    assert result.exit_code == 2
+    assert "bad.json" in result.output and "easing" in result.output
+
+
+def test_a_photo_that_cannot_be_read_is_reported_not_served(tmp_path, preset):
+    photos = tmp_path / "broken"
+    photos.mkdir()
+    (photos / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    write_image(photos / "fine.png", textured_image(120, 160))
+    manifest = tmp_path / "m.json"
+    with running_server(photos, manifest, preset, OPTIONS) as served:
+        photo = {p["name"]: p for p in served.wait_planned()["photos"]}["broken.jpg"]
+        assert photo["status"] == "failed" and "broken.jpg" in photo["error"]
+        image = served.get("/api/photos/broken.jpg/image")
+        assert image.status == 422 and "broken.jpg" in image.json()["error"]
+        save = served.post("/api/save", {"entries": {"broken.jpg": EDITED}})
+        assert save.status == 422 and "broken.jpg" in save.json()["error"]
+        preview = served.post("/api/preview", {"name": "broken.jpg", "entry": {}})
+        assert preview.status == 422 and "broken.jpg" in preview.json()["error"]
+    assert not manifest.exists()
+
+
+def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
+    command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
+               str(tmp_path / "cli.json"), "--port", "0", "--depth", "ramp"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                               text=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
+    try:
+        first_line = process.stdout.readline()
+        url = re.search(r"http://127\.0\.0\.1:\d+/", first_line).group(0)
+        with urllib.request.urlopen(url + "api/photos", timeout=60) as response:
+            names = {p["name"] for p in json.load(response)["photos"]}
+        assert names == set(SIZES)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
