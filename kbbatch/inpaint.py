@@ -302,8 +302,10 @@ def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.nda
     # Near points stay below 255 even where fully opaque (254: 0.4 % see-through), so the
     # renderer draws the whole near side of the band as a layer over what lies behind it.
     alpha = np.clip(layers.alpha * 255 + 0.5, 1, NEAR_LAYER_MAX_ALPHA).astype(np.uint8)
+    whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
     return (
         back_project(photo, layers.depth, view, keep=keep & ~layers.band)
+        .extended(back_project(photo, whole_depth, view, keep=keep & layers.unsplit))
         .extended(back_project(layers.background, layers.far_depth, view,
                                keep=keep & layers.far))
         .extended(back_project(layers.foreground, layers.near_depth, view,

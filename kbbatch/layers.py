@@ -48,11 +48,6 @@ beyond the depth edge stays below that blur's tail."""
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
-SOLVE_ALPHA = 0.3
-"""Above this alpha the object's colour is solved exactly from the compositing equation;
-below it, it leans on the mean of the object's clean pixels nearby."""
-
-
 @dataclass(frozen=True)
 class SoftLayers:
     """Per pixel of the photo at the cloud's density.
@@ -73,7 +68,13 @@ class SoftLayers:
 
     @property
     def near(self) -> np.ndarray:
-        return self.band & (self.alpha > CLEAN_ALPHA)
+        return self.band & (self.alpha > CLEAN_ALPHA) & ~self.unsplit
+
+    @property
+    def unsplit(self) -> np.ndarray:
+        """Band pixels with no clean background near: kept whole, one opaque point on the
+        side their alpha leans to (as if there were no layers)."""
+        return self.band & (self.alpha < 1.0 - CLEAN_ALPHA) & ~self.has_background
 
     @property
     def far(self) -> np.ndarray:
@@ -181,16 +182,26 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     alpha[alpha < CLEAN_ALPHA] = 0.0
     alpha[alpha > 1.0 - CLEAN_ALPHA] = 1.0
 
+    # Colours are solved so that the start view reproduces the photo to the 8-bit level: the
+    # side with the larger share takes its clean estimate, the other the rest of the pixel.
+    # Alpha is quantised first, as the cloud stores it.
+    alpha = np.round(alpha * 255) / 255
     a = alpha[..., None]
-    background = np.where(a <= 0.0, colour, back_mean)
-    # Where no clean background lies near, there is no background colour to give: the pixel
-    # gets no far point, and the extension fills what is behind it from background only.
-    has_background = has_background | (alpha <= 0.0)
-    solved = (colour - (1 - a) * background) / np.maximum(a, SOLVE_ALPHA)
-    lean = np.clip(a / SOLVE_ALPHA, 0.0, 1.0)
     front_start = np.where(has_foreground[..., None], front_mean, colour)
-    foreground = lean * solved + (1 - lean) * front_start
+    mostly_front = a >= 0.5
+    front_fixed = np.round(np.clip(front_start, 0, 255))
+    back_solved = (colour - a * front_fixed) / np.maximum(1 - a, 0.5)
+    background = np.where(mostly_front, back_mean, back_solved)
+    background = np.where(a <= 0.0, colour, background)
+    clipped = np.any((background < 0) | (background > 255), axis=-1, keepdims=True)
+    background = np.round(np.clip(background, 0, 255))
+    # Where the background's colour had to be clipped, the object's takes up the difference.
+    front_solved = (colour - (1 - a) * background) / np.maximum(a, np.where(clipped, 1e-3, 0.5))
+    foreground = np.where(mostly_front | clipped, np.clip(front_solved, 0, 255), front_fixed)
     foreground = np.where(a >= 1.0, colour, foreground)
+    # Where no clean background lies near, there is no background colour to give: the pixel
+    # is kept whole (unsplit), and the extension fills what is behind it from background only.
+    has_background = has_background | (alpha <= 0.0)
 
     smooth = upsample_depth(depth, width, height)
     return SoftLayers(

@@ -239,7 +239,7 @@ def _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, out):
     scale = np.float32(1.0) / max(alpha_sum, np.float32(MIN_SPLAT_WEIGHT * MIN_SPLAT_WEIGHT))
     for c in range(3):
         out[c] = cell[yy, xx, c] * scale
-    return alpha >= np.float32(OPAQUE_ALPHA)
+    return alpha >= np.float32(0.5)  # a fringe mostly over nothing is a hole to fill
 
 
 @numba.njit(cache=True, nogil=True)
@@ -487,8 +487,9 @@ def _clear_cracks(front, cell, clear, back, touched, crack_inv_z):
     """Empty the pixels where background shines through a crack in a magnified foreground:
     two opposite neighbours are nearer by crack_inv_z. They are filled like any hole.
 
-    Only solid surfaces count: where the front is a soft edge, the surface behind it is the
-    pixel's solid one, so the fringe of an object is never taken for a crack around it."""
+    Only solid surfaces count: where the front is a soft edge of alpha below one half, the
+    surface behind it is the pixel's solid one, so the fringe of an object is never taken
+    for a crack around it."""
     height, width = front.shape
     # Where soft points touched, the solid depth stands in for the front while filtering.
     fronts = np.empty(touched.shape[0], np.float32)
@@ -497,8 +498,8 @@ def _clear_cracks(front, cell, clear, back, touched, crack_inv_z):
         xx = touched[k] % width
         fronts[k] = front[yy, xx]
         weight = cell[yy, xx, _WEIGHT]
-        if clear[yy, xx] > 0 and weight - clear[yy, xx] < OPAQUE_ALPHA * weight:
-            front[yy, xx] = back[yy, xx]
+        if clear[yy, xx] > 0 and weight - clear[yy, xx] < np.float32(0.5) * weight:
+            front[yy, xx] = back[yy, xx]  # mostly see-through: the surface behind counts
     # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
     above = front[0].copy()
     row = np.empty_like(above)
