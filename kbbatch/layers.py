@@ -100,6 +100,15 @@ def blurred_edge_tail(distance_px: np.ndarray) -> np.ndarray:
     return np.interp(distance_px, table_px, tail).astype(np.float32)
 
 
+def _remainder(colour: np.ndarray, known: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """The other layer's colour, given one layer's colour and its share of the pixel."""
+    return (colour - share * known) / np.maximum(1 - share, 1 / 255)
+
+
+def _clipped(colour: np.ndarray) -> np.ndarray:
+    return np.any((colour < 0) | (colour > 255), axis=-1, keepdims=True)
+
+
 def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of image over the weighted pixels in a box, and the summed weight there."""
@@ -128,7 +137,8 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     nearest = cv2.erode(depth, window)
     farthest = cv2.dilate(depth, window)
     edges = depth_edges(depth).astype(np.uint8)
-    small_band = cv2.dilate(edges, window) > 0
+    # Split only where the two sides really differ in depth within reach.
+    small_band = (cv2.dilate(edges, window) > 0) & (farthest > nearest * 1.001)
     # Which side each pixel is on, judged over twice the band, so that clean pixels of both
     # sides lie within reach of every band pixel.
     reach = 2 * band_px + 2
@@ -189,16 +199,20 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     a = alpha[..., None]
     front_start = np.where(has_foreground[..., None], front_mean, colour)
     mostly_front = a >= 0.5
-    front_fixed = np.round(np.clip(front_start, 0, 255))
-    back_solved = (colour - a * front_fixed) / np.maximum(1 - a, 0.5)
-    background = np.where(mostly_front, back_mean, back_solved)
-    background = np.where(a <= 0.0, colour, background)
-    clipped = np.any((background < 0) | (background > 255), axis=-1, keepdims=True)
-    background = np.round(np.clip(background, 0, 255))
-    # Where the background's colour had to be clipped, the object's takes up the difference.
-    front_solved = (colour - (1 - a) * background) / np.maximum(a, np.where(clipped, 1e-3, 0.5))
-    foreground = np.where(mostly_front | clipped, np.clip(front_solved, 0, 255), front_fixed)
+    first = np.where(mostly_front, back_mean, front_start)  # the larger share's side
+    first = np.round(np.clip(first, 0, 255))
+    share = np.where(mostly_front, 1 - a, a)  # ... and its share of the pixel
+    second = _remainder(colour, first, share)
+    # Where the background (as the remainder) had to be clipped, the object takes up the
+    # difference; never the other way, which would hand the object's colour to the background.
+    first = np.where(_clipped(second) & ~mostly_front,
+                     _remainder(colour, np.round(np.clip(second, 0, 255)), 1 - share), first)
+    first = np.round(np.clip(first, 0, 255))
+    second = np.round(np.clip(_remainder(colour, first, share), 0, 255))
+    foreground = np.where(mostly_front, second, first)
+    background = np.where(mostly_front, first, second)
     foreground = np.where(a >= 1.0, colour, foreground)
+    background = np.where(a <= 0.0, colour, background)
     # Where no clean background lies near, there is no background colour to give: the pixel
     # is kept whole (unsplit), and the extension fills what is behind it from background only.
     has_background = has_background | (alpha <= 0.0)

@@ -407,7 +407,7 @@ def _splat_kernel(
                         touched_count += 1
                     _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_zs[j],
                                   soft_inv_z, a, r, g, b)
-    _clear_cracks(front, cell, clear, back, touched[:touched_count], crack_inv_z)
+    _clear_cracks(front, cell, stamp, clear, back, frame, touched[:touched_count], crack_inv_z)
     return touched_count
 
 
@@ -483,7 +483,7 @@ def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_in
 
 
 @numba.njit(cache=True, nogil=True)
-def _clear_cracks(front, cell, clear, back, touched, crack_inv_z):
+def _clear_cracks(front, cell, stamp, clear, back, frame, touched, crack_inv_z):
     """Empty the pixels where background shines through a crack in a magnified foreground:
     two opposite neighbours are nearer by crack_inv_z. They are filled like any hole.
 
@@ -514,7 +514,7 @@ def _clear_cracks(front, cell, clear, back, touched, crack_inv_z):
                 or (above[xx] > threshold and below[xx] > threshold)
                 or (above[xx - 1] > threshold and below[xx + 1] > threshold)
                 or (above[xx + 1] > threshold and below[xx - 1] > threshold)
-            ):
+            ) and not (stamp[yy, xx] == frame and clear[yy, xx] > 0):  # a soft edge is no crack
                 front[yy, xx] = 0.0
                 cell[yy, xx, :] = 0.0
         above, row = row, above
