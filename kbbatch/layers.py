@@ -176,43 +176,51 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     least = cv2.resize(cv2.erode(near_u8, slack).astype(np.float32), size,
                        interpolation=cv2.INTER_LINEAR)
     guided = np.clip(guided, least, most)
-    contrast = front_mean - back_mean
-    spread = np.sum(contrast * contrast, axis=-1)
-    along = np.sum((colour - back_mean) * contrast, axis=-1) / np.maximum(spread, 1e-6)
-    trust = spread / (spread + COLOUR_CONTRAST**2)
-    trust = np.where(has_background & has_foreground, trust, 0.0)
-    matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided
     # Beyond the depth edge an object's alpha can only fade like a blurred edge does, so a
     # background that happens to share the object's colour is not taken for part of it.
     # Pixel centres next to the near side lie half a pixel beyond its edge.
     beyond = np.where(near_side, -float(band_px), to_near - 0.5).astype(np.float32)
     outside_px = cv2.resize(beyond, size, interpolation=cv2.INTER_LINEAR)
-    matte = np.minimum(matte, blurred_edge_tail(outside_px))
-    alpha = np.where(band, np.clip(matte, 0.0, 1.0), near_mask > 0.5).astype(np.float32)
-    alpha[alpha < CLEAN_ALPHA] = 0.0
-    alpha[alpha > 1.0 - CLEAN_ALPHA] = 1.0
+
+    # The rest concerns band pixels only.
+    pixel = colour[band]
+    back_here = back_mean[band]
+    front_here = np.where(has_foreground[band][:, None], front_mean[band], pixel)
+    contrast = front_here - back_here
+    spread = np.sum(contrast * contrast, axis=-1)
+    along = np.sum((pixel - back_here) * contrast, axis=-1) / np.maximum(spread, 1e-6)
+    trust = spread / (spread + COLOUR_CONTRAST**2)
+    trust = np.where(has_background[band] & has_foreground[band], trust, 0.0)
+    matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[band]
+    matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
+    matte = np.clip(matte, 0.0, 1.0)
+    matte[matte < CLEAN_ALPHA] = 0.0
+    matte[matte > 1.0 - CLEAN_ALPHA] = 1.0
+    # Alpha is quantised first, as the cloud stores it.
+    matte = (np.round(matte * 255) / 255).astype(np.float32)
 
     # Colours are solved so that the start view reproduces the photo to the 8-bit level: the
     # side with the larger share takes its clean estimate, the other the rest of the pixel.
-    # Alpha is quantised first, as the cloud stores it.
-    alpha = np.round(alpha * 255) / 255
-    a = alpha[..., None]
-    front_start = np.where(has_foreground[..., None], front_mean, colour)
+    a = matte[:, None]
     mostly_front = a >= 0.5
-    first = np.where(mostly_front, back_mean, front_start)  # the larger share's side
-    first = np.round(np.clip(first, 0, 255))
-    share = np.where(mostly_front, 1 - a, a)  # ... and its share of the pixel
-    second = _remainder(colour, first, share)
+    first = np.round(np.clip(np.where(mostly_front, back_here, front_here), 0, 255))
+    share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
+    second = _remainder(pixel, first, share)
     # Where the background (as the remainder) had to be clipped, the object takes up the
     # difference; never the other way, which would hand the object's colour to the background.
     first = np.where(_clipped(second) & ~mostly_front,
-                     _remainder(colour, np.round(np.clip(second, 0, 255)), 1 - share), first)
+                     _remainder(pixel, np.round(np.clip(second, 0, 255)), 1 - share), first)
     first = np.round(np.clip(first, 0, 255))
-    second = np.round(np.clip(_remainder(colour, first, share), 0, 255))
-    foreground = np.where(mostly_front, second, first)
-    background = np.where(mostly_front, first, second)
-    foreground = np.where(a >= 1.0, colour, foreground)
-    background = np.where(a <= 0.0, colour, background)
+    second = np.round(np.clip(_remainder(pixel, first, share), 0, 255))
+    front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
+    back_band = np.where(a <= 0.0, pixel, np.where(mostly_front, first, second))
+
+    alpha = (near_mask > 0.5).astype(np.float32)
+    alpha[band] = matte
+    foreground = photo.copy()
+    foreground[band] = front_band.astype(np.uint8)
+    background = photo.copy()
+    background[band] = back_band.astype(np.uint8)
     # Where no clean background lies near, there is no background colour to give: the pixel
     # is kept whole (unsplit), and the extension fills what is behind it from background only.
     has_background = has_background | (alpha <= 0.0)
@@ -225,6 +233,6 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
         alpha=alpha,
         near_depth=cv2.resize(nearest, size, interpolation=cv2.INTER_NEAREST),
         far_depth=cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST),
-        foreground=np.clip(foreground + 0.5, 0, 255).astype(np.uint8),
-        background=np.clip(background + 0.5, 0, 255).astype(np.uint8),
+        foreground=foreground,
+        background=background,
     )
