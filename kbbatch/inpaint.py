@@ -46,10 +46,6 @@ SOURCE_BAND_PX = 7
 FILL_SMOOTHING_SIGMA_PX = 1.5
 """The grown fill is softened by a Gaussian of this size, inside the holes only."""
 
-NEAR_LAYER_MAX_ALPHA = 254
-"""Alpha (of 255) of the opaque part of a near layer's band: the renderer draws points below
-255 after all others, keeping the surface behind them, which a layer's edge needs."""
-
 ColourInpainter = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """(RGB uint8 image, uint8 mask of pixels to fill) -> RGB uint8 image; e.g. an ONNX network.
 It receives the background fill as a starting point, so it refines texture, not geometry."""
@@ -299,9 +295,7 @@ def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.nda
     edges; within their band a far opaque point with the background's colour and a near point
     with the object's colour and its alpha matte."""
     layers = split_layers(photo, depth)
-    # Near points stay below 255 even where fully opaque (254: 0.4 % see-through), so the
-    # renderer draws the whole near side of the band as a layer over what lies behind it.
-    alpha = np.clip(layers.alpha * 255 + 0.5, 1, NEAR_LAYER_MAX_ALPHA).astype(np.uint8)
+    alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
     whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
     return (
         back_project(photo, layers.depth, view, keep=keep & ~layers.band)

@@ -438,7 +438,7 @@ def _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b):
         cell[yy, xx, _WEIGHT] += w
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_inv_z, a, r, g,
                   b):
     """Splat one bilinear corner of a soft point (after every opaque one).
