@@ -466,20 +466,8 @@ def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_in
         cell[yy, xx, 2] += wa * b
         cell[yy, xx, _WEIGHT] += w
         clear[yy, xx] += w - wa
-    elif clear[yy, xx] > 0:
-        behind = back[yy, xx]
-        if behind < inv_z - soft_inv_z:
-            back[yy, xx] = inv_z
-            back_cell[yy, xx, 0] = wa * r
-            back_cell[yy, xx, 1] = wa * g
-            back_cell[yy, xx, 2] = wa * b
-            back_cell[yy, xx, _WEIGHT] = wa
-        elif behind <= inv_z + soft_inv_z:
-            back[yy, xx] = max(behind, inv_z)
-            back_cell[yy, xx, 0] += wa * r
-            back_cell[yy, xx, 1] += wa * g
-            back_cell[yy, xx, 2] += wa * b
-            back_cell[yy, xx, _WEIGHT] += wa
+    elif clear[yy, xx] > 0:  # behind a soft front: z-buffered into the back surface
+        _soft_z(back, back_cell, yy, xx, wa, inv_z, soft_inv_z, r, g, b)
 
 
 @numba.njit(cache=True, nogil=True)
