@@ -24,6 +24,7 @@ from kbbatch.camera import (
     widest_crop,
     working_view,
 )
+from kbbatch.layers import split_layers
 from kbbatch.render import PointCloud, back_project, depth_edges, render
 
 FOREGROUND_MARGIN = 0.05
@@ -414,6 +415,10 @@ def extend_at_view(
     small_depth[small_uncovered & ~small_region] = np.inf
     small_colour = cv2.resize(rendering.colour, small_size, interpolation=cv2.INTER_AREA)
     blocked = near_side_of_holes(small_depth, small_hole)
+    if rendering.fringe is not None:  # a soft edge's colour is part object: never a source
+        blocked |= cv2.resize(rendering.fringe.astype(np.float32), small_size,
+                              interpolation=cv2.INTER_AREA) > 0
+        blocked &= ~small_hole
     small_colour, small_depth = fill_background(small_colour, small_depth, small_hole, blocked)
     if inpainter is not None:
         image = np.clip(small_colour + 0.5, 0, 255).astype(np.uint8)
@@ -476,6 +481,24 @@ def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
     return np.where(edges, snapped, depth).astype(np.float32)
 
 
+def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray
+                  ) -> PointCloud:
+    """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
+    edges; within their band a far opaque point with the background's colour and a near point
+    with the object's colour and its alpha matte."""
+    layers = split_layers(photo, depth)
+    alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
+    whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
+    return (
+        back_project(photo, layers.depth, view, keep=keep & ~layers.band)
+        .extended(back_project(photo, whole_depth, view, keep=keep & layers.unsplit))
+        .extended(back_project(layers.background, layers.far_depth, view,
+                               keep=keep & layers.far))
+        .extended(back_project(layers.foreground, layers.near_depth, view,
+                               keep=keep & layers.near, alpha=alpha))
+    )
+
+
 def build_extended_cloud(
     photo: np.ndarray,
     depth: np.ndarray,
@@ -483,7 +506,7 @@ def build_extended_cloud(
     scene: SceneGeometry,
     inpainter: ColourInpainter | None = None,
 ) -> Extension:
-    """The photo as a point cloud (edge depths snapped), extended at the extreme views.
+    """The photo as a point cloud in soft layers, extended at the extreme views.
 
     photo is RGB at the cloud density (any size of the working aspect); depth is at the
     working size. At the start view (when it is not the photo's own) and at the overshot end
@@ -493,12 +516,8 @@ def build_extended_cloud(
     cloud_height = round(scene.height_px * cloud_scale)
     if photo.shape[0] != cloud_height:  # a rounding apart: conform, views are sized this way
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
-    snapped = snap_edge_depth(depth)
-    cloud_depth = cv2.resize(snapped, (photo.shape[1], photo.shape[0]),
-                             interpolation=cv2.INTER_NEAREST)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
-    cloud = back_project(photo, cloud_depth, photo_view,
-                         keep=source_window(scene, plan, cloud_scale))
+    cloud = layered_cloud(photo, depth, photo_view, source_window(scene, plan, cloud_scale))
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)
