@@ -19,9 +19,9 @@ from kbbatch import paper
 from kbbatch.batch import ClipOptions, cached_disparity, resize_to
 from kbbatch.camera import depth_from_disparity, working_size
 from kbbatch.images import list_images, read_image
+from kbbatch.planners import PlanRequest, get_planner
+from kbbatch.planners.auto import AutoPlanner, plan_disocclusion
 from kbbatch.presets import load_preset
-from planners import PlanRequest, get_planner
-from planners.auto import AutoPlanner, plan_disocclusion
 
 PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
 import sys
@@ -35,9 +36,15 @@ from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
+from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
 from kbbatch.render import PointCloud, render_frame
-from planners import PlanRequest, get_planner
+from kbbatch.risk import Risk, relieved
+from kbbatch.risk import assess as assess_risk
+
+MAX_CLOUD_POINTS = 40_000_000
+"""The largest point cloud a clip may need; a crop so tight that it would need more is refused
+with the smallest width that fits (measured: a 32 M-point cloud peaks at 3.3 GB)."""
 
 MAX_POINT_SPACING_PX = 1.8
 """Points may land at most this far apart in the output at the tightest crop; bilinear splats
@@ -54,6 +61,26 @@ SCRATCH_PREFIX = "kbbatch-frames-"
 """Temporary frame stores are named with this and their process id."""
 
 CLIP_SUFFIX = ".mp4"
+
+log = logging.getLogger(__name__)
+
+
+CORES_PER_JOB = 4
+"""A clip already renders its frames on every core; a second photo in parallel pays only when
+there are cores to spare (issue 14: on 2 cores, 2 jobs gained 5 % over 1 on 12 photos)."""
+
+MEMORY_PER_JOB_GIB = 3
+"""A worker holds a few GB with the models loaded (issue 14 saw 2.4 GB idle)."""
+
+
+def default_jobs() -> int:
+    """Photos processed in parallel by default, sized from the cores and the memory."""
+    cores = os.cpu_count() or 1
+    try:
+        memory_gib = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**30
+    except (ValueError, OSError):
+        memory_gib = MEMORY_PER_JOB_GIB
+    return max(1, min(cores // CORES_PER_JOB, int(memory_gib // MEMORY_PER_JOB_GIB)))
 
 
 @dataclass(frozen=True)
@@ -77,6 +104,8 @@ class ClipResult:
     stage_seconds: dict[str, float] = field(default_factory=dict)
     frames: int = 0
     detail: str | None = None  # traceback of an unexpected failure
+    note: str | None = None  # e.g. why the clip is named by content
+    risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
 
 
 @dataclass(frozen=True)
@@ -88,6 +117,7 @@ class PreparedScene:
     cloud: PointCloud
     depth_backend: str
     disparity: np.ndarray  # relative, at the working size
+    risk: Risk | None = None
 
 
 def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
@@ -99,6 +129,26 @@ def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px
     wanted = min(preset.width_px / widest, source_scale)
     needed = preset.width_px / tightest / MAX_POINT_SPACING_PX
     return max(wanted, needed, 1.0)
+
+
+class CropTooSmallError(ValueError):
+    """A crop so tight that its clip would need an unbounded point cloud."""
+
+
+def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Preset,
+                     source_width_px: int, photo_path: Path | None) -> None:
+    points = scene.width_px * scene.height_px * scale * scale
+    if points <= MAX_CLOUD_POINTS:
+        return
+    to_source = source_width_px / scene.width_px
+    tightest_px = min(plan.start.width_px, plan.end.width_px) * to_source
+    # needed scale is inversely proportional to the tightest crop: solve for the bound
+    smallest_px = tightest_px * (points / MAX_CLOUD_POINTS) ** 0.5
+    raise CropTooSmallError(
+        f"{photo_path or 'photo'}: a crop {tightest_px:.4g} px wide (of {source_width_px} px) "
+        f"is too tight for {preset.width_px} px output: it needs a {points / 1e6:,.0f} M-point "
+        f"cloud (limit {MAX_CLOUD_POINTS / 1e6:.0f} M); make the tightest crop at least "
+        f"{smallest_px:.0f} px wide")
 
 
 def resize_to(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -127,17 +177,24 @@ def prepare_scene(
     if not plan.parallax:
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))
+    risk = assess_risk(working, depth, plan, scene)
+    if risk.relief < 1.0:  # do no harm: less parallax rather than a broken-looking clip
+        log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
+                    round(100 * risk.relief), "; ".join(risk.reasons))
+        depth = relieved(depth, risk.relief)
+        scene = SceneGeometry(width, height, nearest_depth(depth))
     timings["plan"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
+    check_cloud_size(scale, plan, scene, preset, photo.shape[1], photo_path)
     # The height follows the rounded width, so the cloud keeps the scale the views assume.
     cloud_width = round(width * scale)
     photo_cloud = resize_to(photo, cloud_width, round(height * cloud_width / width))
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
-                         depth_result.disparity)
+                         depth_result.disparity, risk)
 
 
 def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions
@@ -209,11 +266,49 @@ def render_clip_frames(
         del store
 
 
-def progress_bar(iterable: Iterable | None = None, **options) -> tqdm:
-    """A tqdm bar that redraws live on a terminal but writes only now and then into a log."""
-    if not sys.stderr.isatty():
-        options.setdefault("mininterval", PROGRESS_LOG_INTERVAL_S)
-    return tqdm(iterable, **options)
+def progress_bar(iterable: Iterable | None = None, **options) -> tqdm | LogProgress:
+    """A tqdm bar on a terminal; into a log or a pipe, plain lines now and then instead (no 0 %
+    line, no carriage returns or escape codes)."""
+    if sys.stderr.isatty():
+        return tqdm(iterable, **options)
+    return LogProgress(iterable, options.get("total"), options.get("desc", "").strip(),
+                       options.get("unit", "it"), options.get("disable", False))
+
+
+class LogProgress:
+    """Progress for logs: `photos 3/12` at most every PROGRESS_LOG_INTERVAL_S, and at the end."""
+
+    def __init__(self, iterable: Iterable | None, total: int | None, desc: str, unit: str,
+                 disable: bool) -> None:
+        self.iterable = iterable
+        self.total = total if total is not None else (
+            len(iterable) if hasattr(iterable, "__len__") else None)
+        self.desc, self.unit, self.disable = desc, unit, disable
+        self.count = 0
+        self.last_written = time.monotonic()
+
+    def __iter__(self) -> Iterator:
+        for item in self.iterable or ():
+            yield item
+            self.update(1)
+
+    def update(self, count: int = 1) -> None:
+        self.count += count
+        finished = self.total is not None and self.count >= self.total
+        if not self.disable and (finished or time.monotonic() - self.last_written
+                                 >= PROGRESS_LOG_INTERVAL_S):
+            of = f"/{self.total}" if self.total is not None else ""
+            print(f"{self.desc} {self.count}{of} {self.unit}(s)", file=sys.stderr, flush=True)
+            self.last_written = time.monotonic()
+
+    def __enter__(self) -> LogProgress:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Nothing to clear: finished lines are already written (tqdm's close, for callers)."""
 
 
 def remove_stale_scratch() -> list[Path]:
@@ -288,13 +383,7 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
         preset = with_overrides(preset, duration_s=data.get("duration_s"))
     except PresetError as error:
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
-    if "planner" in data:
-        from planners import PLANNER_NAMES
-
-        if data["planner"] not in PLANNER_NAMES:
-            known = ", ".join(PLANNER_NAMES)
-            raise ManifestError(f"{entry.where('planner')}: unknown planner "
-                                f"{data['planner']!r}; available: {known}")
+    if "planner" in data:  # a registered name: checked when the manifest loaded
         options = replace(options, planner=data["planner"])
     if entry.depth_file is not None:
         options = replace(options, depth=replace(options.depth, file=str(entry.depth_file)))
@@ -325,6 +414,7 @@ def make_clip(
                               preset.easing)
         prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
+        result.risk = prepared.risk.summary() if prepared.risk else None
         if options.save_depth:
             save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)
@@ -337,7 +427,7 @@ def make_clip(
         timings["frames+encode"] = time.perf_counter() - clock
         result.output = str(output)
         result.status = "done"
-    except (ImageReadError, DepthError, ManifestError) as error:
+    except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
         result.error = f"{source}: {type(error).__name__}: {error}"
@@ -354,6 +444,7 @@ class ClipJob:
     source: Path
     output: Path
     entry: ManifestEntry | None = None
+    preferred: str = ""  # the name the naming rule wanted (output differs where it was taken)
 
 
 class ClipExecutor(Protocol):
@@ -382,6 +473,8 @@ class RunReport:
     output_folder: str
     preset: str
     results: list[ClipResult]
+    notes: list[str] = field(default_factory=list)  # what was passed over, and why
+    stopped_by: str | None = None  # the signal that ended the run early
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -390,15 +483,21 @@ class RunReport:
     def to_json(self) -> str:
         return json.dumps(
             {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,
+             "stopped_by": self.stopped_by, "notes": self.notes,
              "clips": [asdict(r) for r in self.results]}, indent=2,
         )
 
 
 REPORT_NAME = "kbbatch-report.json"
+PHOTO_KINDS = "jpg, jpeg, png, webp, tif, tiff, bmp"
 
 
 class OutputFolderError(OSError):
     pass
+
+
+class EmptyFolderError(ValueError):
+    """Nothing to do: no photo in the folder (and no manifest entry naming one)."""
 
 
 def check_writable(folder: Path) -> None:
@@ -412,12 +511,49 @@ def check_writable(folder: Path) -> None:
                                 f"({error.strerror or error})") from error
 
 
+def remove_partial_clips(folder: Path) -> list[Path]:
+    """Temporary clips (`.NAME.XXXX.part.mp4`) left by a killed run; call with the folder
+    locked, so that no live run's file is taken."""
+    removed = []
+    for partial in folder.glob(".*.part*"):
+        partial.unlink(missing_ok=True)
+        removed.append(partial)
+    return removed
+
+
 def clip_settings(preset: Preset, options: ClipOptions, entry: ManifestEntry | None) -> str:
     """What shapes a clip besides the photo (threads excluded: output does not depend on them)."""
     from kbbatch.journal import settings_fingerprint
 
     return settings_fingerprint(asdict(preset), options.planner, asdict(options.depth),
                                 entry.data if entry else None)
+
+
+def clip_name_note(source: Path, preferred: str, name: str) -> str | None:
+    if name == preferred:
+        return None
+    return (f"{source.name}: {preferred} already holds a clip of another photo; this one is "
+            f"named by its content: {name}")
+
+
+@contextlib.contextmanager
+def stop_on_sigterm(stop: dict) -> Iterator[None]:
+    """SIGTERM asks the batch to stop after the clip in progress, as it asks the daemon."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def request(*_: object) -> None:
+        stop["by"] = "SIGTERM"
+
+    previous = signal.signal(signal.SIGTERM, request)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def run_folder(
@@ -433,62 +569,138 @@ def run_folder(
 ) -> RunReport:
     """Every photo in a folder to a clip in output_folder; the run report is written there.
 
-    Clips that are complete and up to date (same photo, same settings) are skipped unless
-    force; the journal in the output folder remembers what was made with what. Naming, the
-    journal and the report stay here; the executor only makes clips (here, or on a cluster).
+    Clips that are complete and up to date (same photo, same settings, the clip untouched) are
+    skipped unless force; the journal in the output folder remembers what was made with what.
+    The output folder is locked for the run; partial clips of a killed run are removed first.
+    SIGTERM stops after the clips in progress, Ctrl-C at once; either way nothing partial stays
+    and the journal says which photos are left. Naming, the journal, the lock and the report
+    stay here; the executor only makes clips (here, or on a cluster).
     """
-    executor = executor or LocalExecutor()
-    from kbbatch.journal import Journal, source_fingerprint
+    from kbbatch.images import scan_folder
+    from kbbatch.journal import FolderLock, Journal, JournalError
 
-    check_writable(output_folder)
+    executor = executor or LocalExecutor()
     remove_stale_scratch()
-    journal = Journal(output_folder)
-    sources = list_images(folder)
-    names = output_names(sources)
+    output_folder = output_folder.absolute()
+    scan = scan_folder(folder, ignore=(output_folder.name,)
+                       if output_folder.parent == folder.absolute() else ())
+    missing = manifest.missing_images(folder) if manifest is not None else []
+    if not scan.photos and not scan.broken_links and not missing:
+        raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}); nothing was written")
+    check_writable(output_folder)
+    lock = FolderLock(output_folder, "writing clips into")
     results: list[ClipResult] = []
-    if manifest is not None:
-        for name in manifest.missing_images(folder):
-            results.append(ClipResult(str(folder / name), None, "failed", 0.0,
-                                      error=f"{manifest.path}: image {name!r}: no such photo "
-                                      f"in {folder}"))
-    bar = progress_bar(total=len(sources), desc="photos", unit="photo",
+    notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
+             for sub in scan.subfolders]
+    for link in scan.broken_links:
+        results.append(ClipResult(str(link), None, "failed", 0.0, error=f"{link}: broken "
+                                  f"symbolic link (its target {os.readlink(link)} is missing)"))
+    for name in missing:
+        results.append(ClipResult(str(folder / name), None, "failed", 0.0,
+                                  error=f"{manifest.path}: image {name!r}: no such photo "
+                                  f"in {folder}"))
+    stop: dict = {}
+    try:
+        remove_partial_clips(output_folder)
+        journal = Journal(output_folder)
+    except JournalError as error:
+        lock.release()
+        raise OutputFolderError(str(error)) from error
+    names = output_names(scan.photos)
+    bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
                        disable=not show_progress)
 
     def jobs() -> Iterator[ClipJob]:
         """The photos to make, each started in the journal as the executor takes it."""
-        for source in sources:
-            entry = manifest.entry(source.name) if manifest else None
+        for photo in scan.photos:
+            if stop:
+                return
+            entry = manifest.entry(photo.name) if manifest else None
             if entry is not None and entry.excluded:
-                results.append(ClipResult(str(source), None, "excluded", 0.0))
+                results.append(ClipResult(str(photo.absolute()), None, "excluded", 0.0))
                 bar.update()
                 continue
-            output = output_folder / names[source]
-            fingerprint = source_fingerprint(source)
-            settings = clip_settings(preset, options, entry)
-            if not force and journal.is_up_to_date(source.name, fingerprint, settings, output):
-                results.append(ClipResult(str(source), str(output), "skipped", 0.0))
+            job = start_job(journal, photo.absolute(), output_folder, names[photo], preset,
+                            options, entry, force)
+            if isinstance(job, ClipResult):  # skipped, or failed before it could start
+                results.append(job)
                 bar.update()
+                if fail_fast and job.status == "failed":
+                    return
                 continue
-            journal.start(source.name, fingerprint, settings, output.name)
-            yield ClipJob(source, output, entry)
+            yield job
 
     try:
-        with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
-                                ) as rendered:
-            for job, result in rendered:
-                journal.finish(job.source.name, "done" if result.status == "done" else "failed",
-                               result.seconds, result.error)
-                results.append(result)
-                bar.update()
-                if fail_fast and result.status != "done":
-                    break
+        with stop_on_sigterm(stop):
+            for job in journal.jobs("running"):  # a run that was killed or interrupted
+                journal.finish(Path(job.source), "queued", 0.0, "interrupted")
+            with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
+                                    ) as rendered:
+                for job, result in rendered:
+                    results.append(finish_job(journal, job, result))
+                    bar.update()
+                    if fail_fast and results[-1].status == "failed":
+                        break
+    except KeyboardInterrupt:
+        stop["by"] = "SIGINT"
+        raise
     finally:
         bar.close()
+        with contextlib.suppress(JournalError):
+            for job in journal.jobs("running"):
+                journal.finish(Path(job.source), "queued", 0.0,
+                               f"interrupted by {stop.get('by', 'an error')}")
         journal.close()
-    report = RunReport(str(folder), str(output_folder), preset.name, results)
-    with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
-        temp_path.write_text(report.to_json(), encoding="utf-8")
+        report = RunReport(str(folder), str(output_folder), preset.name, results, notes,
+                           stop.get("by"))
+        try:
+            with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
+                temp_path.write_text(report.to_json(), encoding="utf-8")
+        except OSError as error:
+            report.notes.append(f"{output_folder / REPORT_NAME}: report could not be written "
+                                f"({error.strerror or error})")
+        lock.release()
     return report
+
+
+def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,
+              options: ClipOptions, entry: ManifestEntry | None, force: bool
+              ) -> ClipJob | ClipResult:
+    """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
+    to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
+    from kbbatch.images import unreadable_reason
+    from kbbatch.journal import JournalError, content_hash, source_fingerprint
+
+    try:
+        fingerprint = source_fingerprint(source)
+        content = content_hash(source)
+    except OSError as error:
+        return ClipResult(str(source), None, "failed", 0.0,
+                          error=f"{source}: {unreadable_reason(error)}")
+    settings = clip_settings(preset, options, entry)
+    try:
+        name = journal.clip_name(source, content, preferred, output_folder)
+        output = output_folder / name
+        if not force and journal.is_up_to_date(source, fingerprint, settings, output):
+            return ClipResult(str(source), str(output), "skipped", 0.0)
+        journal.start(source, fingerprint, settings, name, content)
+    except JournalError as error:
+        return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
+    return ClipJob(source, output, entry, preferred)
+
+
+def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
+    """Record a made clip in the journal; a journal that cannot be written fails the photo."""
+    from kbbatch.journal import JournalError, source_fingerprint
+
+    if job.preferred:
+        result.note = clip_name_note(job.source, job.preferred, job.output.name)
+    try:
+        clip = source_fingerprint(job.output) if result.status == "done" else None
+        journal.finish(job.source, result.status, result.seconds, result.error, clip)
+    except (JournalError, OSError) as error:
+        return ClipResult(str(job.source), None, "failed", 0.0, error=f"{job.source}: {error}")
+    return result
 
 
 @dataclass
@@ -511,7 +723,9 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     results: list[PlanResult] = []
     entries: dict[str, dict] = {}
     previews = []
-    for source in progress_bar(list_images(folder), desc="planning", unit="photo",
+    sources = list_images(folder)
+    names = output_names(sources)
+    for source in progress_bar(sources, desc="planning", unit="photo",
                                disable=not show_progress):
         started = time.perf_counter()
         try:
@@ -521,7 +735,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             entry = plan_to_entry(plan, photo.shape[1], working.shape[1])
             entries[source.name] = entry
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
-            write_image(preview_dir / f"{source.stem}.jpg", preview)
+            preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"
+            write_image(preview_dir / preview_name, preview)
             previews.append(preview)
             results.append(PlanResult(str(source), "done", entry=entry,
                                       seconds=time.perf_counter() - started))

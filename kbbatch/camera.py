@@ -16,6 +16,10 @@ import numpy as np
 
 from kbbatch import paper
 
+ASPECT_TOLERANCE = 0.02
+"""Two aspect ratios this close (as a fraction) are the same, allowing for pixel rounding; a
+manifest crop or a depth map further from its target's aspect is refused, not stretched."""
+
 Easing = Literal["linear", "ease-in-out"]
 EASINGS: tuple[str, ...] = ("linear", "ease-in-out")
 

@@ -10,12 +10,36 @@ import click
 
 from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
-from kbbatch.batch import ClipOptions, OutputFolderError, RunReport, plan_folder, run_folder
+from kbbatch.batch import (
+    CORES_PER_JOB,
+    MEMORY_PER_JOB_GIB,
+    ClipOptions,
+    EmptyFolderError,
+    OutputFolderError,
+    RunReport,
+    default_jobs,
+    plan_folder,
+    run_folder,
+)
 from kbbatch.depth import DepthOptions
+from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
-from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
+from kbbatch.planners import PLANNER_NAMES
+from kbbatch.presets import (
+    Preset,
+    PresetError,
+    builtin_names,
+    load_preset,
+    setting_docs,
+    with_overrides,
+)
 from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
-from planners import PLANNER_NAMES
+
+EXIT_NOTHING_TO_DO = 3
+"""Exit status of a batch over a folder without photos (0: all made, 1: some failed)."""
+
+EXIT_INTERRUPTED = 130
+"""Exit status of a batch stopped by Ctrl-C or SIGTERM before it was through."""
 
 
 class DefaultCommandGroup(click.Group):
@@ -39,90 +63,133 @@ def main() -> None:
     """
 
 
-def _load_preset(name: str, duration: float | None, fps: float | None) -> Preset:
+def _shared(*decorators):
+    """Options declared once and given to every command that takes them."""
+
+    def apply(command):
+        for decorator in reversed(decorators):
+            command = decorator(command)
+        return command
+
+    return apply
+
+
+preset_options = _shared(
+    click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True,
+                 help="Preset name or path to a .toml file (see `kbbatch presets`)."),
+    click.option("--duration", type=float, help="Override the preset's forward duration (s)."),
+    click.option("--fps", type=float, help="Override the preset's frame rate."),
+)
+scene_options = _shared(
+    click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto",
+                 show_default=True, help="How the start and end crops are chosen."),
+    click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
+                 default="auto", show_default=True, help="Where depth comes from."),
+    click.option("--depth-model", type=click.Choice(sorted(
+        n for n, s in model_registry.REGISTRY.items() if s.role == "depth")),
+        help="Depth network for --depth onnx/auto (default: the first one cached)."),
+    click.option("--no-adjust", is_flag=True, help="Do not flatten salient objects into cards."),
+    click.option("--no-refine", is_flag=True, help="Plain bilinear upsampling of depth."),
+)
+manifest_option = click.option(
+    "--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="JSON manifest of per-image crops and overrides.")
+save_depth_option = click.option(
+    "--save-depth", is_flag=True,
+    help="Also write a 16-bit disparity PNG and a coloured preview per clip.")
+
+
+def _preset(options: dict) -> Preset:
+    """The preset of `preset_options`; an error blames the option that caused it."""
     try:
-        return with_overrides(load_preset(name), duration_s=duration, fps=fps)
+        preset = load_preset(options.pop("preset_name"))
     except PresetError as error:
         raise click.BadParameter(str(error), param_hint="--preset") from error
+    for hint, setting, value in (("--duration", "duration_s", options.pop("duration")),
+                                 ("--fps", "fps", options.pop("fps"))):
+        try:
+            preset = with_overrides(preset, **{setting: value})
+        except PresetError as error:
+            raise click.BadParameter(str(error), param_hint=hint) from error
+    return preset
 
 
-def executor_options(command):
-    """--executor and the Ray options, shared by the batch and the daemon."""
-    for option in reversed([
-        click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
-                     default="local", show_default=True,
-                     help="Make clips on this machine, or as tasks on a Ray cluster."),
-        click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else "
-                     "Ray starts on this machine)."),
-        click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
-                     show_default=True, help="CPUs a clip reserves on a Ray worker (threads)."),
-        click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
-                     show_default=True, help="GPUs (or a fraction) a clip reserves on a worker."),
-    ]):
-        command = option(command)
-    return command
+def _clip_options(options: dict, **more) -> ClipOptions:
+    """The ClipOptions of `scene_options`, plus what the command adds."""
+    depth = DepthOptions(backend=options.pop("depth_backend"), model=options.pop("depth_model"),
+                         adjust=not options.pop("no_adjust"),
+                         refine=not options.pop("no_refine"))
+    return ClipOptions(planner=options.pop("planner"), depth=depth, **more)
+
+
+executor_options = _shared(
+    click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
+                 default="local", show_default=True,
+                 help="Make clips on this machine, or as tasks on a Ray cluster."),
+    click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else "
+                 "Ray starts on this machine)."),
+    click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
+                 show_default=True, help="CPUs a clip reserves on a Ray worker (threads)."),
+    click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
+                 show_default=True, help="GPUs (or a fraction) a clip reserves on a worker."),
+)
 
 
 @main.command()
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder (default: FOLDER/kenburns).")
-@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True,
-              help="Preset name or path to a .toml file (see `kbbatch presets`).")
-@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True,
-              help="How the start and end crops are chosen.")
-@click.option("--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False,
-              path_type=Path), help="JSON manifest of per-image crops and overrides.")
-@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
-              default="auto", show_default=True, help="Where depth comes from.")
-@click.option("--depth-model", type=click.Choice(sorted(
-    n for n, s in model_registry.REGISTRY.items() if s.role == "depth")),
-    help="Depth network for --depth onnx/auto (default: the first one cached).")
-@click.option("--no-adjust", is_flag=True, help="Do not flatten salient objects into cards.")
-@click.option("--no-refine", is_flag=True, help="Plain bilinear upsampling of depth.")
-@click.option("--save-depth", is_flag=True,
-              help="Also write a 16-bit disparity PNG and a coloured preview per clip.")
-@click.option("--duration", type=float, help="Override the preset's forward duration (s).")
-@click.option("--fps", type=float, help="Override the preset's frame rate.")
+@preset_options
+@scene_options
+@manifest_option
+@save_depth_option
 @click.option("--threads", type=int, default=ClipOptions().threads, show_default=True,
               help="Frames rendered in parallel.")
 @click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
 @click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @executor_options
-def render(folder: Path, output: Path | None, preset_name: str, planner: str,
-           manifest_path: Path | None, depth_backend: str, depth_model: str | None,
-           no_adjust: bool, no_refine: bool, save_depth: bool, duration: float | None,
-           fps: float | None, threads: int, force: bool, fail_fast: bool,
-           quiet: bool, executor_name: str, ray_address: str | None,
-           ray_cpus_per_clip: float, ray_gpus_per_clip: float) -> None:
+def render(folder: Path, output: Path | None, manifest_path: Path | None, save_depth: bool,
+           threads: int, force: bool, fail_fast: bool, quiet: bool, **shared) -> None:
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
-    preset = _load_preset(preset_name, duration, fps)
+    preset = _preset(shared)
+    options = _clip_options(shared, threads=threads, save_depth=save_depth)
     output = output or folder / "kenburns"
-    depth = DepthOptions(backend=depth_backend, model=depth_model, adjust=not no_adjust,
-                         refine=not no_refine)
-    options = ClipOptions(planner=planner, depth=depth, threads=threads, save_depth=save_depth)
     manifest = _load_manifest(manifest_path)
-    executor = _executor(executor_name, ray_address, ray_cpus_per_clip, ray_gpus_per_clip)
+    executor = _executor(shared)
     try:
         report = run_folder(folder, output, preset, options, show_progress=not quiet,
                             manifest=manifest, force=force, fail_fast=fail_fast,
                             executor=executor)
-    except (OutputFolderError, RayUnavailableError) as error:
+    except (OutputFolderError, FolderBusyError, RayUnavailableError) as error:
         raise click.ClickException(str(error)) from error
+    except EmptyFolderError as error:
+        click.echo(f"Error: {error}", err=True)
+        sys.exit(EXIT_NOTHING_TO_DO)
+    except KeyboardInterrupt:
+        click.echo("\ninterrupted: no partial clip is left; run again to finish", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     _print_summary(report)
+    if report.stopped_by:
+        click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
+                   "finish", err=True)
+        sys.exit(EXIT_INTERRUPTED)
     sys.exit(1 if report.failed else 0)
 
 
-def _executor(name: str, ray_address: str | None, cpus_per_clip: float, gpus_per_clip: float):
-    """The local executor, or Ray's (checked to be installed before any photo is touched)."""
+def _executor(options: dict) -> RayExecutor | None:
+    """The executor of `executor_options` (None: this machine); Ray is checked to be installed
+    before any photo is touched."""
+    name = options.pop("executor_name")
+    executor = RayExecutor(options.pop("ray_address"), options.pop("ray_cpus_per_clip"),
+                           options.pop("ray_gpus_per_clip"))
     if name == "local":
         return None
     try:
         import_ray()
     except RayUnavailableError as error:
         raise click.ClickException(str(error)) from error
-    return RayExecutor(ray_address, cpus_per_clip, gpus_per_clip)
+    return executor
 
 
 def _load_manifest(path: Path | None):
@@ -138,19 +205,16 @@ def _load_manifest(path: Path | None):
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-o", "--output", "manifest_path", type=click.Path(dir_okay=False, path_type=Path),
               default=Path("manifest.json"), show_default=True, help="Manifest to write.")
-@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True)
-@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True)
-@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
-              default="auto", show_default=True)
-@click.option("--quiet", is_flag=True)
-def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, depth_backend: str,
-         quiet: bool) -> None:
+@preset_options
+@scene_options
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     """Plan every photo in FOLDER and write an editable manifest with preview pictures.
 
     Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`.
     """
-    preset = _load_preset(preset_name, None, None)
-    options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
+    preset = _preset(shared)
+    options = _clip_options(shared)
     results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
     done = [r for r in results if r.status == "done"]
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
@@ -166,18 +230,15 @@ def plan(folder: Path, manifest_path: Path, preset_name: str, planner: str, dept
 @click.option("--manifest", "manifest_path", type=click.Path(dir_okay=False, path_type=Path),
               default=Path("manifest.json"), show_default=True,
               help="Manifest to edit (created on the first save).")
-@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True,
-              help="Preset of photos whose entry names none.")
-@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True)
-@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
-              default="auto", show_default=True)
+@preset_options
+@scene_options
 @click.option("--host", default="127.0.0.1", show_default=True,
               help="Address to listen on; anything but a local one exposes the page.")
 @click.option("--port", type=click.IntRange(0, 65535), default=8765, show_default=True,
               help="Port (0: any free one).")
 @click.option("--open", "open_browser", is_flag=True, help="Open the page in a web browser.")
-def review(folder: Path, manifest_path: Path, preset_name: str, planner: str,
-           depth_backend: str, host: str, port: int, open_browser: bool) -> None:
+def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser: bool,
+           **shared) -> None:
     """Review and edit every photo's plan in a web page, then save the manifest.
 
     Render the saved manifest with `kbbatch FOLDER --manifest MANIFEST`.
@@ -188,8 +249,8 @@ def review(folder: Path, manifest_path: Path, preset_name: str, planner: str,
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
-    preset = _load_preset(preset_name, None, None)
-    options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
+    preset = _preset(shared)
+    options = _clip_options(shared)
     try:
         session = ReviewSession(folder, manifest_path, preset, options)
     except ManifestError as error:
@@ -225,20 +286,26 @@ def _print_summary(report: RunReport) -> None:
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")
+    for result in report.results:
+        if result.note:
+            click.echo(f"NOTE {result.note}", err=True)
+    for note in report.notes:
+        click.echo(f"NOTE {note}", err=True)
     for result in report.failed:
         click.echo(f"FAILED {result.error}", err=True)
-    if not report.results:
-        click.echo("no photos found (jpg, jpeg, png, webp, tif, tiff, bmp)", err=True)
 
 
 @main.command()
 def presets() -> None:
-    """List the shipped presets with their settings."""
+    """List the shipped presets with their settings, and what each setting means."""
     names = [f.name for f in fields(Preset) if f.name not in ("name", "description")]
     for preset_name in builtin_names():
         preset = load_preset(preset_name)
         click.echo(f"{preset.name}: {preset.description}")
         click.echo("  " + ", ".join(f"{n}={getattr(preset, n)}" for n in names))
+    click.echo("\nsettings of a preset file (a path works wherever a name does):")
+    for name, meaning in setting_docs().items():
+        click.echo(f"  {name:<15} {meaning}")
 
 
 @main.group()
@@ -250,6 +317,12 @@ def models() -> None:
 def models_list() -> None:
     """Registered models, their licence and whether each is cached."""
     click.echo(f"cache: {model_registry.models_dir()}")
+    try:
+        provider = model_registry.execution_provider()
+    except model_registry.ModelError as error:
+        raise click.ClickException(str(error)) from error
+    click.echo(f"onnxruntime: {provider}, {model_registry.session_threads()} thread(s) per "
+               f"session (set {model_registry.PROVIDER_ENV} to choose the provider)")
     for spec in model_registry.REGISTRY.values():
         cached = "cached" if model_registry.cached_path(spec.name) else "missing"
         pinned = "sha256 pinned" if spec.sha256 else "no sha256 registered"
@@ -273,23 +346,21 @@ def models_pull(name: str, sha256: str | None) -> None:
 @click.argument("inbox", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--out", "outbox", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder the clips are written to (the job journal lives there too).")
-@click.option("-p", "--preset", "preset_name", default="slideshow", show_default=True)
-@click.option("--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False,
-              path_type=Path), help="JSON manifest of per-image crops and overrides.")
-@click.option("--planner", type=click.Choice(PLANNER_NAMES), default="auto", show_default=True)
-@click.option("--depth", "depth_backend", type=click.Choice(depth_stage.BACKEND_NAMES),
-              default="auto", show_default=True)
-@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Photos processed in parallel (processes).")
+@preset_options
+@scene_options
+@manifest_option
+@save_depth_option
+@click.option("--jobs", type=click.IntRange(min=1), default=None,
+              help="Photos processed in parallel (worker processes). Default: one per "
+              f"{CORES_PER_JOB} cores and per {MEMORY_PER_JOB_GIB} GiB of memory, at least 1 "
+              f"(here: {default_jobs()}); each worker renders with cores/jobs threads.")
 @click.option("--poll", is_flag=True, help="Poll the folder instead of inotify (network shares).")
 @click.option("--settle", "settle_s", type=float, default=2.0, show_default=True,
               help="Seconds a photo's size and time must stay unchanged before it is taken.")
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
 @executor_options
-def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | None, planner: str,
-          depth_backend: str, jobs: int, poll: bool, settle_s: float, keep_sources: bool,
-          executor_name: str, ray_address: str | None, ray_cpus_per_clip: float,
-          ray_gpus_per_clip: float) -> None:
+def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: bool, jobs: int | None,
+          poll: bool, settle_s: float, keep_sources: bool, **shared) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
     import logging
 
@@ -297,14 +368,15 @@ def watch(inbox: Path, outbox: Path, preset_name: str, manifest_path: Path | Non
     from kbbatch.watch import watch as run_daemon
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    preset = _load_preset(preset_name, None, None)
-    options = ClipOptions(planner=planner, depth=DepthOptions(backend=depth_backend))
-    executor = _executor(executor_name, ray_address, ray_cpus_per_clip, ray_gpus_per_clip)
+    preset = _preset(shared)
+    options = _clip_options(shared, save_depth=save_depth)
+    executor = _executor(shared)
     settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
-                             jobs, poll, settle_s, keep_sources, executor)
+                             jobs or default_jobs(), poll, settle_s, keep_sources, executor)
     try:
         sys.exit(run_daemon(settings))
-    except (OutputFolderError, RayUnavailableError) as error:
+    except (OutputFolderError, FolderBusyError, JournalError,
+            RayUnavailableError) as error:
         raise click.ClickException(str(error)) from error
 
 

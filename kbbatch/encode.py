@@ -6,6 +6,7 @@ The ffmpeg binary is the one on PATH, else the one shipped in the imageio-ffmpeg
 from __future__ import annotations
 
 import functools
+import os
 import re
 import shutil
 import subprocess
@@ -23,6 +24,18 @@ class EncodeError(RuntimeError):
     pass
 
 
+class EncoderError(EncodeError):
+    """An encoder setting this ffmpeg cannot use; `field` names the preset setting."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+TRIAL_SIZE_PX = 64
+"""Side of the two black frames a preset's encoder settings are tried on when it loads."""
+
+
 @functools.cache
 def ffmpeg_exe() -> str:
     """Path of the ffmpeg binary to use."""
@@ -32,6 +45,49 @@ def ffmpeg_exe() -> str:
     import imageio_ffmpeg
 
     return imageio_ffmpeg.get_ffmpeg_exe()
+
+
+@functools.cache
+def _encoders() -> frozenset[str]:
+    """Video encoders this ffmpeg binary offers."""
+    listing = subprocess.run([ffmpeg_exe(), "-hide_banner", "-encoders"], capture_output=True,
+                             text=True, check=True).stdout
+    return frozenset(m.group(1) for m in re.finditer(r"^ V\S* (\S+)", listing, re.MULTILINE))
+
+
+@functools.cache
+def _pixel_formats(codec: str) -> frozenset[str]:
+    """Pixel formats an encoder lists (empty when it lists none)."""
+    text = subprocess.run([ffmpeg_exe(), "-hide_banner", "-h", f"encoder={codec}"],
+                          capture_output=True, text=True).stdout
+    found = re.search(r"Supported pixel formats: (.*)", text)
+    return frozenset(found.group(1).split()) if found else frozenset()
+
+
+def check_encoder(preset: Preset) -> None:
+    """Raise EncoderError unless this ffmpeg can encode with the preset's codec, pix_fmt and
+    encoder_preset: known lists first, then two tiny frames through the real command."""
+    _check_encoder(preset.codec, preset.pix_fmt, preset.encoder_preset, preset.crf)
+
+
+@functools.cache
+def _check_encoder(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> None:
+    if codec not in _encoders():
+        raise EncoderError("codec", f"ffmpeg ({ffmpeg_exe()}) has no video encoder {codec!r}")
+    formats = _pixel_formats(codec)
+    if formats and pix_fmt not in formats:
+        raise EncoderError("pix_fmt", f"{codec} cannot write {pix_fmt!r}; it offers "
+                                      f"{', '.join(sorted(formats))}")
+    trial = Preset("trial", "", TRIAL_SIZE_PX, TRIAL_SIZE_PX, 25.0, 0.08, "linear", 1.0, "in",
+                   0.0, codec, crf, pix_fmt, encoder_preset)
+    command = encoder_command(Path(os.devnull), trial, container="null")
+    frames = np.zeros((2, TRIAL_SIZE_PX, TRIAL_SIZE_PX, 3), np.uint8)
+    result = subprocess.run(command, input=frames.tobytes(), capture_output=True)
+    if result.returncode != 0:
+        reason = " ".join(result.stderr.decode(errors="replace").strip().splitlines()[:2])
+        field = "encoder_preset" if encoder_preset else "codec"
+        raise EncoderError(field, f"ffmpeg refuses {codec} with {field} "
+                                  f"{getattr(trial, field)!r}: {reason}")
 
 
 def palindrome_order(frames_forward: int) -> list[int]:
@@ -100,23 +156,19 @@ class VideoInfo:
 
 
 def probe(path: Path) -> VideoInfo:
-    """Stream facts from ffmpeg's own report (the wheel ships no ffprobe)."""
-    result = subprocess.run(
-        [ffmpeg_exe(), "-hide_banner", "-i", str(path)], capture_output=True, text=True
-    )
-    report = result.stderr
-    video = re.search(r"Video: (\w+).*?, (\d+)x(\d+).*?, ([\d.]+) fps", report)
-    duration = re.search(r"Duration: (\d+):(\d+):([\d.]+)", report)
-    if not video or not duration:
-        raise EncodeError(f"{path}: ffmpeg found no video stream ({report.strip()[-300:]})")
-    hours, minutes, seconds = duration.groups()
-    return VideoInfo(
-        width_px=int(video.group(2)),
-        height_px=int(video.group(3)),
-        fps=float(video.group(4)),
-        duration_s=int(hours) * 3600 + int(minutes) * 60 + float(seconds),
-        codec=video.group(1),
-    )
+    """Stream facts, as imageio-ffmpeg reads them (the wheel ships no ffprobe)."""
+    import imageio_ffmpeg
+
+    try:
+        reader = imageio_ffmpeg.read_frames(str(path))
+        meta = next(reader)
+        reader.close()
+    except (OSError, RuntimeError, StopIteration) as error:
+        reason = (str(error).strip().splitlines() or ["no metadata"])[-1]
+        raise EncodeError(f"{path}: ffmpeg found no video stream ({reason})") from error
+    width_px, height_px = meta["size"]
+    return VideoInfo(width_px=width_px, height_px=height_px, fps=float(meta["fps"]),
+                     duration_s=float(meta["duration"]), codec=meta["codec"])
 
 
 def decode_frames(path: Path, width_px: int, height_px: int) -> Iterator[np.ndarray]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import tempfile
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -55,7 +56,40 @@ def is_image_file(path: Path) -> bool:
 
 def list_images(folder: Path) -> list[Path]:
     """Photos directly inside a folder, in name order."""
-    return sorted(p for p in folder.iterdir() if p.is_file() and is_image_file(p))
+    return scan_folder(folder).photos
+
+
+@dataclass(frozen=True)
+class FolderScan:
+    """What a folder holds for us: photos, and what looks like one but cannot be used."""
+
+    photos: list[Path]
+    broken_links: list[Path]  # photo names whose symbolic link points nowhere
+    subfolders: list[Path]  # not searched: one folder is one batch
+
+
+def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
+    """Photos directly inside a folder in name order, and the broken links and subfolders that
+    would otherwise be passed over without a word."""
+    photos, broken, subfolders = [], [], []
+    for path in sorted(folder.iterdir()):
+        if path.name.startswith(".") or path.name in ignore:
+            continue
+        if path.is_dir():
+            subfolders.append(path)
+        elif is_image_file(path):
+            if path.is_file():
+                photos.append(path)
+            elif path.is_symlink():
+                broken.append(path)
+    return FolderScan(photos, broken, subfolders)
+
+
+def unreadable_reason(error: OSError) -> str:
+    """Why a file could not be opened, in words (a permission problem is not corruption)."""
+    if isinstance(error, PermissionError):
+        return "cannot be read: permission denied"
+    return f"cannot be read ({error.strerror or error})"
 
 
 def read_image(path: Path) -> np.ndarray:
@@ -64,7 +98,7 @@ def read_image(path: Path) -> np.ndarray:
     try:
         size = path.stat().st_size
     except OSError as error:
-        raise ImageReadError(path, f"cannot be opened ({error.strerror})") from error
+        raise ImageReadError(path, unreadable_reason(error)) from error
     if size == 0:
         raise ImageReadError(path, "is empty (0 bytes)")
     try:
@@ -83,6 +117,8 @@ def read_image(path: Path) -> np.ndarray:
             return _to_rgb8(image)
     except ImageReadError:
         raise
+    except PermissionError as error:
+        raise ImageReadError(path, unreadable_reason(error)) from error
     except UnidentifiedImageError as error:
         raise ImageReadError(path, "is not an image this tool can read") from error
     except (OSError, ValueError, SyntaxError) as error:

@@ -24,6 +24,7 @@ from kbbatch.camera import (
     widest_crop,
     working_view,
 )
+from kbbatch.layers import split_layers
 from kbbatch.render import PointCloud, back_project, depth_edges, render
 
 FOREGROUND_MARGIN = 0.05
@@ -42,8 +43,24 @@ EDGE_SNAP_RADIUS_PX = 2
 SOURCE_BAND_PX = 7
 """How far around a hole colour sources are screened for foreground, at the working size."""
 
-FILL_SMOOTHING_SIGMA_PX = 1.5
-"""The grown fill is softened by a Gaussian of this size, inside the holes only."""
+PATCH_RADIUS_PX = 3
+"""Exemplar fill: patches of (2r+1)^2 pixels are compared, at the working size."""
+
+SEARCH_RADIUS_PX = 40
+"""Exemplar fill: random source candidates are drawn within this distance of a hole pixel..."""
+
+SEARCH_SCALES = 3
+"""... and within 2x, 4x (up to 2^(n-1)x) that distance, in turn, for holes wider than it."""
+
+RANDOM_CANDIDATES = 24
+"""Exemplar fill: random candidates per hole pixel, besides its neighbours' coherent ones."""
+
+REFINE_SWEEPS = 2
+"""Exemplar fill: PatchMatch sweeps over the filled pixels after the onion-peel pass."""
+
+VOTE_RADIUS_PX = 2
+"""Exemplar fill: the patches voting on a pixel's final colour lie within this radius."""
+
 
 ColourInpainter = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """(RGB uint8 image, uint8 mask of pixels to fill) -> RGB uint8 image; e.g. an ONNX network.
@@ -91,106 +108,278 @@ def near_side_of_holes(depth: np.ndarray, hole: np.ndarray) -> np.ndarray:
 def fill_background(
     colour: np.ndarray, depth: np.ndarray, hole: np.ndarray, blocked: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Fill holes jointly in colour and depth, growing inward from background sources only.
+    """Fill holes jointly in colour and depth from background sources only, with texture.
 
-    Each ring of hole pixels takes the mean colour and the farthest depth of its already
-    known neighbours; blocked pixels (the near side of a hole border) are never sources, so
-    the fill continues the surface behind the hole, never the object beside it.
+    Depth grows in ring by ring from the far side (each hole pixel takes the farthest depth of
+    its known neighbours), so the surface behind the hole continues. Colour is an exemplar
+    synthesis in the same ring order: each pixel copies real background pixels, found by
+    patch matching among sources at least as far as its filled depth, then overlapping
+    patches vote: texture, not a flat blob. Blocked pixels (the near side of a hole border)
+    and pixels without depth are never sources.
     """
     filled_colour = colour.astype(np.float32).copy()
     filled_depth = depth.astype(np.float32).copy()
-    known = ~hole & ~blocked
+    source = ~hole & ~blocked & np.isfinite(filled_depth) & (filled_depth > 0)
     rows, cols = np.nonzero(hole)
-    _grow_fill(filled_colour, filled_depth, known, rows.astype(np.int32), cols.astype(np.int32))
+    order = _ring_order(source, rows.astype(np.int64), cols.astype(np.int64))
+    ring_rows, ring_cols = rows[order].astype(np.int64), cols[order].astype(np.int64)
+    _grow_far_depth(filled_depth, source, ring_rows, ring_cols)
+    offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols)
+    for sweep in range(REFINE_SWEEPS):
+        step = 1 if sweep % 2 else -1  # inward, then outward, ...
+        _refine(filled_colour, filled_depth, source, offsets, ring_rows[::step],
+                ring_cols[::step], sweep)
+    _vote(filled_colour, offsets, ring_rows, ring_cols)
     return filled_colour, filled_depth
 
 
 @numba.njit(cache=True, nogil=True)
-def _grow_fill(colour, depth, known, rows, cols):
-    # Ring by ring from a frontier (hole pixels touching known ones), so each hole pixel is
-    # visited a bounded number of times, however wide the hole.
+def _ring_order(known, rows, cols):
+    # Indices of the hole pixels (rows, cols) in onion-peel order: those touching a known
+    # pixel first, then ring by ring inward; pixels no ring reaches (fenced in) come last.
     height, width = known.shape
     total = rows.shape[0]
-    in_hole = np.zeros((height, width), np.bool_)
-    queued = np.zeros((height, width), np.bool_)
-    frontier_y = np.empty(total, np.int64)
-    frontier_x = np.empty(total, np.int64)
-    next_y = np.empty(total, np.int64)
-    next_x = np.empty(total, np.int64)
-    values = np.empty((total, 4), np.float32)
+    index = np.full((height, width), -1, np.int64)
     for k in range(total):
-        in_hole[rows[k], cols[k]] = True
+        index[rows[k], cols[k]] = k
+    reached = known.copy()
+    order = np.empty(total, np.int64)
     size = 0
     for k in range(total):
         y, x = rows[k], cols[k]
-        touches = False
         for dy in range(-1, 2):
             for dx in range(-1, 2):
                 yy, xx = y + dy, x + dx
-                if 0 <= yy < height and 0 <= xx < width and known[yy, xx]:
-                    touches = True
-        if touches:
-            queued[y, x] = True
-            frontier_y[size] = y
-            frontier_x[size] = x
+                if (0 <= yy < height and 0 <= xx < width and known[yy, xx]
+                        and not reached[y, x]):
+                    reached[y, x] = True
+                    order[size] = k
+                    size += 1
+    start = 0
+    while start < size:
+        end = size
+        for j in range(start, end):
+            y, x = rows[order[j]], cols[order[j]]
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy, xx = y + dy, x + dx
+                    if (0 <= yy < height and 0 <= xx < width and index[yy, xx] >= 0
+                            and not reached[yy, xx]):
+                        reached[yy, xx] = True
+                        order[size] = index[yy, xx]
+                        size += 1
+        start = end
+    for k in range(total):
+        if not reached[rows[k], cols[k]]:
+            order[size] = k
             size += 1
-    while size > 0:
-        for k in range(size):
-            y, x = frontier_y[k], frontier_x[k]
-            count = 0
-            red = green = blue = far = np.float32(0.0)
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    yy, xx = y + dy, x + dx
-                    if 0 <= yy < height and 0 <= xx < width and known[yy, xx]:
-                        count += 1
-                        red += colour[yy, xx, 0]
-                        green += colour[yy, xx, 1]
-                        blue += colour[yy, xx, 2]
-                        far = max(far, depth[yy, xx])
-            values[k, 0] = red / count
-            values[k, 1] = green / count
-            values[k, 2] = blue / count
-            values[k, 3] = far
-        for k in range(size):
-            y, x = frontier_y[k], frontier_x[k]
-            for c in range(3):
-                colour[y, x, c] = values[k, c]
-            depth[y, x] = values[k, 3]
-            known[y, x] = True
-        following = 0
-        for k in range(size):
-            y, x = frontier_y[k], frontier_x[k]
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    yy, xx = y + dy, x + dx
-                    if (0 <= yy < height and 0 <= xx < width and in_hole[yy, xx]
-                            and not queued[yy, xx]):
-                        queued[yy, xx] = True
-                        next_y[following] = yy
-                        next_x[following] = xx
-                        following += 1
-        frontier_y, next_y = next_y, frontier_y
-        frontier_x, next_x = next_x, frontier_x
-        size = following
-    # A hole fenced in by foreground alone: take the farthest depth seen and mid grey.
+    return order
+
+
+@numba.njit(cache=True, nogil=True)
+def _grow_far_depth(depth, known, rows, cols):
+    # In ring order, each hole pixel takes the farthest depth among its known or already
+    # filled neighbours; a pixel fenced in by foreground takes the farthest known depth.
+    height, width = known.shape
+    valid = known.copy()
     farthest = np.float32(0.0)
     for y in range(height):
         for x in range(width):
-            if known[y, x] and depth[y, x] > farthest and depth[y, x] < np.inf:
+            if known[y, x] and depth[y, x] > farthest:
                 farthest = depth[y, x]
-    for k in range(total):
+    for k in range(rows.shape[0]):
         y, x = rows[k], cols[k]
-        if not known[y, x]:
-            depth[y, x] = farthest
+        far = np.float32(0.0)
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < height and 0 <= xx < width and valid[yy, xx]:
+                    far = max(far, depth[yy, xx])
+        depth[y, x] = far if far > 0 else farthest
+        valid[y, x] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _candidate_hash(y, x, k):
+    # A fixed pseudo-random number per (pixel, candidate): the fill is deterministic.
+    h = (y * 73856093) ^ (x * 19349663) ^ (k * 83492791)
+    h = (h ^ (h >> 13)) * 1274126177
+    return h ^ (h >> 16)
+
+
+@numba.njit(cache=True, nogil=True)
+def _patch_distance(colour, valid, source, ty, tx, sy, sx):
+    # Mean squared colour difference between the target patch (its known or filled pixels)
+    # and the source patch (its source pixels); inf when they share no pixel.
+    height, width = source.shape
+    radius = PATCH_RADIUS_PX
+    total = 0.0
+    count = 0
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            y1, x1, y2, x2 = ty + dy, tx + dx, sy + dy, sx + dx
+            if not (0 <= y1 < height and 0 <= x1 < width and 0 <= y2 < height
+                    and 0 <= x2 < width):
+                continue
+            if not valid[y1, x1] or not source[y2, x2]:
+                continue
             for c in range(3):
-                colour[y, x, c] = 127.5
+                d = colour[y1, x1, c] - colour[y2, x2, c]
+                total += d * d
+            count += 1
+    return total / count if count else np.inf
 
 
-def smooth_fill(colour: np.ndarray, hole: np.ndarray) -> np.ndarray:
-    """Soften the ring-growth streaks inside holes only (the border colours stay put)."""
-    blurred = cv2.GaussianBlur(colour, (0, 0), FILL_SMOOTHING_SIGMA_PX)
-    return np.where(hole[..., None], blurred, colour)
+@numba.njit(cache=True, nogil=True)
+def _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum):
+    # A source candidate's patch distance; inf when it is outside, not a background source,
+    # or nearer than the surface being continued.
+    height, width = source.shape
+    if not (0 <= cy < height and 0 <= cx < width) or not source[cy, cx]:
+        return np.inf
+    if depth[cy, cx] < minimum:
+        return np.inf
+    return _patch_distance(colour, valid, source, y, x, cy, cx)
+
+
+@numba.njit(cache=True, nogil=True)
+def _synthesise(colour, depth, source, rows, cols):
+    # Exemplar synthesis in ring order: each hole pixel copies the centre of the best
+    # matching source patch among coherent candidates (its filled neighbours' sources,
+    # shifted) and random ones within SEARCH_RADIUS_PX; a candidate must be a source at
+    # least as far as the pixel's filled depth. Returns the source of each filled pixel.
+    height, width = source.shape
+    search = SEARCH_RADIUS_PX
+    valid = source.copy()  # sources and copied pixels: what target patches are compared on
+    filled = source.copy()  # ... and pixels given a neighbour mean (not compared on)
+    offsets = np.full((height, width, 2), -1, np.int64)
+    candidates = np.empty((RANDOM_CANDIDATES + 9, 2), np.int64)
+    for k in range(rows.shape[0]):
+        y, x = rows[k], cols[k]
+        minimum = depth[y, x] * (1.0 - FOREGROUND_MARGIN)
+        n = 0
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < height and 0 <= xx < width and valid[yy, xx]:
+                    if offsets[yy, xx, 0] >= 0:
+                        candidates[n, 0] = offsets[yy, xx, 0] - dy
+                        candidates[n, 1] = offsets[yy, xx, 1] - dx
+                    else:
+                        candidates[n, 0] = yy
+                        candidates[n, 1] = xx
+                    n += 1
+        for j in range(RANDOM_CANDIDATES):
+            h = _candidate_hash(y, x, j)
+            reach = search << (j % SEARCH_SCALES)  # near ones, and some far for wide holes
+            candidates[n, 0] = y + h % (2 * reach + 1) - reach
+            candidates[n, 1] = x + (h >> 11) % (2 * reach + 1) - reach
+            n += 1
+        best_y, best_x = -1, -1
+        best_score = np.inf
+        for j in range(n):
+            cy, cx = candidates[j, 0], candidates[j, 1]
+            score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
+            if score < best_score:
+                best_score = score
+                best_y, best_x = cy, cx
+        if best_y >= 0:
+            for c in range(3):
+                colour[y, x, c] = colour[best_y, best_x, c]
+            offsets[y, x, 0] = best_y
+            offsets[y, x, 1] = best_x
+            valid[y, x] = True
+        else:  # no far source nearby: the mean of the far neighbours, else mid grey
+            _neighbour_mean(colour, depth, filled, y, x, minimum)
+        filled[y, x] = True
+    return offsets
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine(colour, depth, source, offsets, rows, cols, sweep):
+    # One PatchMatch sweep over the filled pixels, now that every patch is complete: each
+    # tries its neighbours' sources (shifted) and random ones around its own at shrinking
+    # distances, and keeps the best far enough source.
+    height, width = source.shape
+    valid = source.copy()
+    for k in range(rows.shape[0]):
+        valid[rows[k], cols[k]] = True
+    for k in range(rows.shape[0]):
+        y, x = rows[k], cols[k]
+        minimum = depth[y, x] * (1.0 - FOREGROUND_MARGIN)
+        best_y, best_x = offsets[y, x, 0], offsets[y, x, 1]
+        best_score = np.inf
+        if best_y >= 0:
+            best_score = _patch_distance(colour, valid, source, y, x, best_y, best_x)
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                yy, xx = y + dy, x + dx
+                if not (0 <= yy < height and 0 <= xx < width) or offsets[yy, xx, 0] < 0:
+                    continue
+                cy, cx = offsets[yy, xx, 0] - dy, offsets[yy, xx, 1] - dx
+                score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
+                if score < best_score:
+                    best_score, best_y, best_x = score, cy, cx
+        reach = SEARCH_RADIUS_PX
+        j = 0
+        while reach >= 1 and best_y >= 0:
+            h = _candidate_hash(y, x, 1000 * (sweep + 1) + j)
+            cy = best_y + h % (2 * reach + 1) - reach
+            cx = best_x + (h >> 11) % (2 * reach + 1) - reach
+            score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
+            if score < best_score:
+                best_score, best_y, best_x = score, cy, cx
+            reach //= 2
+            j += 1
+        if best_y >= 0:
+            offsets[y, x, 0] = best_y
+            offsets[y, x, 1] = best_x
+            for c in range(3):
+                colour[y, x, c] = colour[best_y, best_x, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbour_mean(colour, depth, valid, y, x, minimum):
+    height, width = valid.shape
+    total = np.zeros(3, np.float32)
+    count = 0
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy, xx = y + dy, x + dx
+            if (0 <= yy < height and 0 <= xx < width and valid[yy, xx]
+                    and depth[yy, xx] >= minimum):
+                for c in range(3):
+                    total[c] += colour[yy, xx, c]
+                count += 1
+    for c in range(3):
+        colour[y, x, c] = total[c] / count if count else 127.5
+
+
+@numba.njit(cache=True, nogil=True)
+def _vote(colour, offsets, rows, cols):
+    # Each filled pixel becomes the mean of what the patches of its filled neighbours copied
+    # onto it (Wexler et al.'s voting): coherent copies stay sharp, stray ones blend in.
+    height, width = offsets.shape[:2]
+    radius = VOTE_RADIUS_PX
+    voted = np.empty((rows.shape[0], 3), np.float32)
+    for k in range(rows.shape[0]):
+        y, x = rows[k], cols[k]
+        total = np.zeros(3, np.float32)
+        count = 0
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                yy, xx = y + dy, x + dx
+                if 0 <= yy < height and 0 <= xx < width and offsets[yy, xx, 0] >= 0:
+                    sy, sx = offsets[yy, xx, 0] - dy, offsets[yy, xx, 1] - dx
+                    if 0 <= sy < height and 0 <= sx < width:
+                        for c in range(3):
+                            total[c] += colour[sy, sx, c]
+                        count += 1
+        for c in range(3):
+            voted[k, c] = total[c] / count if count else colour[y, x, c]
+    for k in range(rows.shape[0]):
+        for c in range(3):
+            colour[rows[k], cols[k], c] = voted[k, c]
 
 
 def extend_at_view(
@@ -217,12 +406,20 @@ def extend_at_view(
     # A working-size pixel is a hole if any of its view pixels is, so that no source colour
     # or depth is averaged with empty pixels.
     uncovered = (~rendering.covered).astype(np.float32)
-    small_hole = cv2.resize(uncovered, small_size, interpolation=cv2.INTER_AREA) > 0
+    small_uncovered = cv2.resize(uncovered, small_size, interpolation=cv2.INTER_AREA) > 0
+    # Only the region is filled (no frame shows the rest); the rest is no source either.
+    small_region = cv2.resize(region.astype(np.uint8), small_size,
+                              interpolation=cv2.INTER_AREA) > 0
+    small_hole = small_uncovered & small_region
     small_depth = cv2.resize(rendering.depth, small_size, interpolation=cv2.INTER_NEAREST)
+    small_depth[small_uncovered & ~small_region] = np.inf
     small_colour = cv2.resize(rendering.colour, small_size, interpolation=cv2.INTER_AREA)
     blocked = near_side_of_holes(small_depth, small_hole)
+    if rendering.fringe is not None:  # a soft edge's colour is part object: never a source
+        blocked |= cv2.resize(rendering.fringe.astype(np.float32), small_size,
+                              interpolation=cv2.INTER_AREA) > 0
+        blocked &= ~small_hole
     small_colour, small_depth = fill_background(small_colour, small_depth, small_hole, blocked)
-    small_colour = smooth_fill(small_colour, small_hole)
     if inpainter is not None:
         image = np.clip(small_colour + 0.5, 0, 255).astype(np.uint8)
         mask = (small_hole | blocked).astype(np.uint8) * 255
@@ -284,6 +481,24 @@ def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
     return np.where(edges, snapped, depth).astype(np.float32)
 
 
+def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray
+                  ) -> PointCloud:
+    """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
+    edges; within their band a far opaque point with the background's colour and a near point
+    with the object's colour and its alpha matte."""
+    layers = split_layers(photo, depth)
+    alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
+    whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
+    return (
+        back_project(photo, layers.depth, view, keep=keep & ~layers.band)
+        .extended(back_project(photo, whole_depth, view, keep=keep & layers.unsplit))
+        .extended(back_project(layers.background, layers.far_depth, view,
+                               keep=keep & layers.far))
+        .extended(back_project(layers.foreground, layers.near_depth, view,
+                               keep=keep & layers.near, alpha=alpha))
+    )
+
+
 def build_extended_cloud(
     photo: np.ndarray,
     depth: np.ndarray,
@@ -291,7 +506,7 @@ def build_extended_cloud(
     scene: SceneGeometry,
     inpainter: ColourInpainter | None = None,
 ) -> Extension:
-    """The photo as a point cloud (edge depths snapped), extended at the extreme views.
+    """The photo as a point cloud in soft layers, extended at the extreme views.
 
     photo is RGB at the cloud density (any size of the working aspect); depth is at the
     working size. At the start view (when it is not the photo's own) and at the overshot end
@@ -301,12 +516,8 @@ def build_extended_cloud(
     cloud_height = round(scene.height_px * cloud_scale)
     if photo.shape[0] != cloud_height:  # a rounding apart: conform, views are sized this way
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
-    snapped = snap_edge_depth(depth)
-    cloud_depth = cv2.resize(snapped, (photo.shape[1], photo.shape[0]),
-                             interpolation=cv2.INTER_NEAREST)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
-    cloud = back_project(photo, cloud_depth, photo_view,
-                         keep=source_window(scene, plan, cloud_scale))
+    cloud = layered_cloud(photo, depth, photo_view, source_window(scene, plan, cloud_scale))
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)

@@ -1,7 +1,9 @@
 """A persistent job journal (SQLite in the output folder): what was done, with which settings.
 
 The daemon and the one-shot batch both use it, so a restart (even after kill -9) finishes
-interrupted work without redoing what is complete, and a re-run skips up-to-date clips.
+interrupted work without redoing what is complete, a re-run skips up-to-date clips, and a clip
+name is never given to a second, different photo. Jobs are keyed by the photo's absolute path
+(the daemon updates it when it moves the photo to done/ or failed/).
 """
 
 from __future__ import annotations
@@ -16,25 +18,51 @@ from typing import Any
 
 JOURNAL_NAME = ".kbbatch-journal.sqlite"
 STATES = ("queued", "running", "done", "failed")
+CONTENT_NAME_HEX = 8
+"""Hex digits of the photo's sha256 in a clip named by content (`IMG_0001.3fa2c9e1.mp4`)."""
+
+COLUMNS = (("source", "TEXT PRIMARY KEY"), ("fingerprint", "TEXT NOT NULL"),
+           ("settings", "TEXT NOT NULL"), ("state", "TEXT NOT NULL"), ("output", "TEXT"),
+           ("error", "TEXT"), ("attempts", "INTEGER NOT NULL DEFAULT 0"), ("seconds", "REAL"),
+           ("updated", "REAL NOT NULL"), ("content", "TEXT"), ("clip", "TEXT"))
+
+
+class JournalError(OSError):
+    """The journal cannot be read or written (a full disk, a read-only or broken file)."""
 
 
 @dataclass(frozen=True)
 class Job:
-    source: str
+    source: str  # absolute path of the photo
     fingerprint: str
     settings: str
     state: str
-    output: str | None
+    output: str | None  # clip file name in the output folder
     error: str | None
     attempts: int
     seconds: float | None
     updated: float
+    content: str | None  # sha256 of the photo's bytes
+    clip: str | None  # size and mtime of the finished clip, to notice a truncated one
+
+    @property
+    def name(self) -> str:
+        return Path(self.source).name
 
 
 def source_fingerprint(path: Path) -> str:
-    """Size and modification time: a changed photo is a new job."""
+    """Size and modification time: a changed photo (or clip) is a new one."""
     stat = path.stat()
     return f"{stat.st_size}:{stat.st_mtime_ns}"
+
+
+def content_hash(path: Path) -> str:
+    """sha256 of a file's bytes: which photo this is, wherever it lies and whatever its name."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def settings_fingerprint(*parts: Any) -> str:
@@ -43,58 +71,154 @@ def settings_fingerprint(*parts: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+LOW_SPACE_BYTES = 1 << 20
+"""Below this much free space, a journal error says how full the disk is."""
+
+
+def free_space_note(folder: Path) -> str:
+    import shutil
+
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return ""
+    return f"; the disk is full ({free // 1024} KB free)" if free < LOW_SPACE_BYTES else ""
+
+
+def _guarded(method):
+    """Turn SQLite's errors into a JournalError that names the journal and the reason."""
+    def wrapper(self, *args, **kwargs):
+        try:
+            return method(self, *args, **kwargs)
+        except sqlite3.Error as error:
+            raise JournalError(f"{self.path}: job journal cannot be written ({error})"
+                               f"{free_space_note(self.path.parent)}") from error
+    wrapper.__doc__ = method.__doc__
+    return wrapper
+
+
 class Journal:
+    @_guarded
     def __init__(self, folder: Path) -> None:
-        folder.mkdir(parents=True, exist_ok=True)
         self.path = folder / JOURNAL_NAME
+        folder.mkdir(parents=True, exist_ok=True)
         self.connection = sqlite3.connect(self.path, timeout=30, isolation_level=None)
         self.connection.execute("PRAGMA journal_mode=WAL")
         self.connection.execute("PRAGMA synchronous=FULL")
-        self.connection.execute(
-            "CREATE TABLE IF NOT EXISTS jobs (source TEXT PRIMARY KEY, fingerprint TEXT NOT NULL,"
-            " settings TEXT NOT NULL, state TEXT NOT NULL, output TEXT, error TEXT,"
-            " attempts INTEGER NOT NULL DEFAULT 0, seconds REAL, updated REAL NOT NULL)"
-        )
+        self.connection.execute("CREATE TABLE IF NOT EXISTS jobs ("
+                                + ", ".join(f"{n} {t}" for n, t in COLUMNS) + ")")
+        present = {row[1] for row in self.connection.execute("PRAGMA table_info(jobs)")}
+        for name, kind in COLUMNS:  # journals written by earlier versions
+            if name not in present:
+                self.connection.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
 
     def close(self) -> None:
         self.connection.close()
 
-    def get(self, source: str) -> Job | None:
-        row = self.connection.execute("SELECT * FROM jobs WHERE source = ?", (source,)).fetchone()
-        return Job(*row) if row else None
+    def _select(self, where: str = "", args: tuple = ()) -> list[Job]:
+        names = ", ".join(n for n, _ in COLUMNS)
+        rows = self.connection.execute(f"SELECT {names} FROM jobs {where} ORDER BY source", args)
+        return [Job(*row) for row in rows]
 
+    @_guarded
+    def get(self, source: Path) -> Job | None:
+        jobs = self._select("WHERE source = ?", (str(source),))
+        return jobs[0] if jobs else None
+
+    @_guarded
     def jobs(self, state: str | None = None) -> list[Job]:
-        query, args = "SELECT * FROM jobs", ()
-        if state:
-            query, args = query + " WHERE state = ?", (state,)
-        return [Job(*row) for row in self.connection.execute(query + " ORDER BY source", args)]
+        return self._select("WHERE state = ?", (state,)) if state else self._select()
 
-    def start(self, source: str, fingerprint: str, settings: str, output: str) -> None:
-        attempts = self.connection.execute(
-            "SELECT attempts FROM jobs WHERE source = ? AND fingerprint = ?",
-            (source, fingerprint)).fetchone()
+    @_guarded
+    def start(self, source: Path, fingerprint: str, settings: str, output: str,
+              content: str) -> None:
+        previous = self.get(source)
+        attempts = previous.attempts if previous and previous.fingerprint == fingerprint else 0
         self.connection.execute(
-            "INSERT OR REPLACE INTO jobs VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?)",
-            (source, fingerprint, settings, output, (attempts[0] if attempts else 0) + 1,
-             time.time()),
+            "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output, error,"
+            " attempts, seconds, updated, content, clip)"
+            " VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?, ?, NULL)",
+            (str(source), fingerprint, settings, output, attempts + 1, time.time(), content),
         )
 
-    def finish(self, source: str, state: str, seconds: float, error: str | None = None) -> None:
+    @_guarded
+    def finish(self, source: Path, state: str, seconds: float, error: str | None = None,
+               clip: str | None = None) -> None:
         self.connection.execute(
-            "UPDATE jobs SET state = ?, seconds = ?, error = ?, updated = ? WHERE source = ?",
-            (state, seconds, error, time.time(), source),
-        )
+            "UPDATE jobs SET state = ?, seconds = ?, error = ?, clip = ?, updated = ?"
+            " WHERE source = ?", (state, seconds, error, clip, time.time(), str(source)))
 
-    def outputs_taken(self) -> dict[str, str]:
-        """Clip name -> the source that owns it."""
-        rows = self.connection.execute("SELECT output, source FROM jobs WHERE output IS NOT NULL")
-        return dict(rows.fetchall())
+    @_guarded
+    def moved(self, source: Path, destination: Path) -> None:
+        """The photo now lies at destination (done/ or failed/); its clip stays its own."""
+        with self.connection:
+            self.connection.execute("DELETE FROM jobs WHERE source = ?", (str(destination),))
+            self.connection.execute("UPDATE jobs SET source = ? WHERE source = ?",
+                                    (str(destination), str(source)))
 
+    @_guarded
+    def owners(self, output: str) -> list[Job]:
+        """Jobs whose clip has this file name."""
+        return self._select("WHERE output = ?", (output,))
+
+    @_guarded
     def counts(self) -> dict[str, int]:
         rows = self.connection.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state")
         return {state: 0 for state in STATES} | dict(rows.fetchall())
 
-    def is_up_to_date(self, source: str, fingerprint: str, settings: str, output: Path) -> bool:
+    def is_up_to_date(self, source: Path, fingerprint: str, settings: str, output: Path) -> bool:
+        """Done with this photo and these settings, and the clip is the very file then written
+        (a truncated or replaced clip has another size or time)."""
         job = self.get(source)
-        return (job is not None and job.state == "done" and job.fingerprint == fingerprint
-                and job.settings == settings and output.is_file())
+        if job is None or job.state != "done" or job.output != output.name:
+            return False
+        try:
+            clip = source_fingerprint(output)
+        except OSError:
+            return False
+        return job.fingerprint == fingerprint and job.settings == settings and job.clip == clip
+
+    def clip_name(self, source: Path, content: str, preferred: str, folder: Path) -> str:
+        """The clip's file name: `preferred` unless a clip of another photo has (or is about
+        to have) it; then the photo's stem and the start of its sha256. One rule for the batch
+        and the daemon, so no clip of one photo ever replaces a clip of another."""
+        if self._is_free(preferred, source, content, folder):
+            return preferred
+        return f"{Path(source).stem}.{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}"
+
+    def _is_free(self, name: str, source: Path, content: str, folder: Path) -> bool:
+        owners = sorted(self.owners(name), key=lambda job: job.updated)
+        latest = owners[-1] if owners else None
+        if latest is not None and (latest.source == str(source) or latest.content == content
+                                   or latest.source == Path(source).name):
+            return True  # this photo's own clip (re-rendered, the folder moved, or a journal
+            # of an earlier version, which keyed jobs by file name)
+        if (folder / name).exists():
+            return False  # another photo's clip, or a file kbbatch did not write
+        return latest is None or latest.state != "running"
+
+
+class FolderBusyError(RuntimeError):
+    pass
+
+
+class FolderLock:
+    """An exclusive lock on a folder (flock on the folder itself, so it needs no file there and
+    works on a read-only inbox); released when the process ends, even by kill -9."""
+
+    def __init__(self, folder: Path, what: str) -> None:
+        import fcntl
+        import os
+
+        self.descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            fcntl.flock(self.descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError as error:
+            os.close(self.descriptor)
+            raise FolderBusyError(f"{folder}: another kbbatch is already {what} this folder; "
+                                  "stop it first") from error
+
+    def release(self) -> None:
+        import os
+
+        os.close(self.descriptor)

@@ -12,10 +12,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from kbbatch.camera import Crop, Plan
+from kbbatch.camera import ASPECT_TOLERANCE, Crop, Plan
 
-ASPECT_TOLERANCE = 0.02
-"""A crop's height may differ from the output aspect's by this fraction (rounding)."""
+FLAT_PLANNER = "2d"
+"""The one planner an entry with crops may name: its crops, rendered without parallax."""
+
 
 
 class ManifestError(ValueError):
@@ -68,7 +69,7 @@ class ManifestEntry:
                                     f"outside the {size} photo")
             crops.append(source_crop.scaled(to_working))
         return Plan(crops[0], crops[1], easing=self.data.get("easing", easing),
-                    planner="manifest")
+                    planner="manifest", parallax=self.data.get("planner") != FLAT_PLANNER)
 
 
 def _describe(crop: Crop) -> str:
@@ -121,7 +122,25 @@ def manifest_from_data(data: Any, path: Path) -> Manifest:
         raise ManifestError(f"{path}: {where}: {error.message}")
     entries = {name: ManifestEntry(name, entry, Path(path)) for name, entry in
                data["images"].items()}
+    for entry in entries.values():
+        _check_planner(entry)
     return Manifest(Path(path), entries)
+
+
+def _check_planner(entry: ManifestEntry) -> None:
+    """A registered planner, and with crops only `2d` (crops are already the camera path)."""
+    from kbbatch.planners import PLANNER_NAMES
+
+    planner = entry.data.get("planner")
+    if planner is None:
+        return
+    if planner not in PLANNER_NAMES:
+        raise ManifestError(f"{entry.where('planner')}: unknown planner {planner!r}; "
+                            f"available: {', '.join(PLANNER_NAMES)}")
+    if entry.has_crops and planner != FLAT_PLANNER:
+        raise ManifestError(f"{entry.where('planner')}: the entry gives crops and planner "
+                            f"{planner!r}; crops are the plan, so remove 'planner' (or set it "
+                            f"to {FLAT_PLANNER!r} to render these crops without parallax)")
 
 
 def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> dict[str, Any]:
@@ -133,8 +152,11 @@ def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> di
         return {"center_x": round(s.center_x_px, 2), "center_y": round(s.center_y_px, 2),
                 "width": round(s.width_px, 2), "height": round(s.height_px, 2)}
 
-    return {"units": "px", "start": crop(plan.start), "end": crop(plan.end),
-            "easing": plan.easing}
+    entry = {"units": "px", "start": crop(plan.start), "end": crop(plan.end),
+             "easing": plan.easing}
+    if not plan.parallax:
+        entry["planner"] = FLAT_PLANNER
+    return entry
 
 
 def write_manifest(path: Path, entries: dict[str, dict[str, Any]]) -> None:

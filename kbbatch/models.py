@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 MODELS_ENV = "KBBATCH_MODELS"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -156,23 +159,70 @@ def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = No
     return path
 
 
-@functools.cache
-def _providers() -> list[str]:
+PROVIDER_ENV = "KBBATCH_PROVIDER"
+PROVIDER_NAMES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
+"""Short names for $KBBATCH_PROVIDER; a full onnxruntime provider name works as well."""
+
+_jobs_sharing_cores = 1
+
+
+def share_cores(jobs: int) -> None:
+    """Say that `jobs` processes share this machine's cores; called by a runner in each worker
+    before the first session, so that N jobs run about `cores` threads, not N x cores."""
+    global _jobs_sharing_cores
+    _jobs_sharing_cores = max(1, jobs)
+    session.cache_clear()
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its affinity, which containers and taskset narrow)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def session_threads() -> int:
+    """Intra-op threads of each session: this process's share of the cores."""
+    return max(1, usable_cores() // _jobs_sharing_cores)
+
+
+def execution_provider() -> str:
+    """The onnxruntime provider: $KBBATCH_PROVIDER if set, else CUDA where the installed
+    onnxruntime has it (the `onnxruntime-gpu` build), else CPU."""
     import onnxruntime
 
     available = onnxruntime.get_available_providers()
-    preferred = ["CUDAExecutionProvider", "CPUExecutionProvider"]
-    return [p for p in preferred if p in available] or available
+    wanted = os.environ.get(PROVIDER_ENV, "").strip()
+    if not wanted:
+        return PROVIDER_NAMES["cuda"] if PROVIDER_NAMES["cuda"] in available else \
+            PROVIDER_NAMES["cpu"]
+    provider = PROVIDER_NAMES.get(wanted.lower(), wanted)
+    if provider not in available:
+        raise ModelError(f"{PROVIDER_ENV}={wanted}: this onnxruntime offers "
+                         f"{', '.join(available)} (CUDA needs the onnxruntime-gpu extra)")
+    return provider
 
 
 @functools.cache
 def session(path: Path):
-    """An onnxruntime session for a model file, created once per process."""
+    """An onnxruntime session for a model file, created once per process, on the chosen
+    provider and with this process's share of the cores."""
     import onnxruntime
 
     options = onnxruntime.SessionOptions()
     options.log_severity_level = 3
-    return onnxruntime.InferenceSession(str(path), options, providers=_providers())
+    options.intra_op_num_threads = session_threads()
+    options.inter_op_num_threads = 1
+    options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
+    provider = execution_provider()
+    # CUDA sessions keep the CPU provider for the operators CUDA lacks.
+    providers = [provider] if provider == PROVIDER_NAMES["cpu"] else [provider,
+                                                                       PROVIDER_NAMES["cpu"]]
+    created = onnxruntime.InferenceSession(str(path), options, providers=providers)
+    log.info("%s on %s, %d thread(s)", path.name, created.get_providers()[0],
+             options.intra_op_num_threads)
+    return created
 
 
 def load(name: str):

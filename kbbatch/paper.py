@@ -24,18 +24,11 @@ ZMIN_BORDER_PX = 128
 START_CROP_FRACTION = 0.97
 """The automatic start view is the whole image less a 3 % margin."""
 
-AUTO_ZOOM = 1.25
-"""The automatic end view is the start view divided by this."""
-
 AUTO_SEARCH_GRID = 16
-"""The end crop's centre is searched on this many positions per axis."""
+"""The end crop's centre is searched on this many positions per axis, over +- the preset's
+max_shift_px. The paper's zoom (1.25), search range (100 px) and reference clip (75 linear
+steps at 25 fps) are preset settings: see presets/reference.toml."""
 
-AUTO_SEARCH_RANGE_PX = 100.0
-"""... over +- this many pixels at the working size."""
-
-REFERENCE_STEPS = 75
-REFERENCE_FPS = 25
-"""The reference clip: 75 linear steps at 25 fps, then played back reversed."""
 
 # --- Point cloud rendering (section 3.2) ------------------------------------------------
 DEPTH_EDGE_LAPLACIAN = 0.03

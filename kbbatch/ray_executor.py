@@ -237,17 +237,22 @@ class RayClipPool:
         self.executor = executor
         self.pending: set = set()
 
-    def __enter__(self) -> RayClipPool:
-        # Ray's driver installs its own SIGTERM handler (it exits at once); the daemon's stays.
+    def start(self) -> RayClipPool:
+        """Start or join Ray; Ray's driver installs its own SIGTERM handler (it exits at once),
+        so the daemon's handlers are put back."""
         handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
         self.ray, self.remote_clip = self.executor.connect()
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
         return self
 
-    def __exit__(self, *_: object) -> None:
-        for ref in list(self.pending):
-            self.ray.cancel(ref)
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        """Like ProcessPoolExecutor.shutdown: wait for the clips in flight, or cancel them."""
+        if cancel_futures or not wait:
+            for ref in list(self.pending):
+                self.ray.cancel(ref)
+        elif self.pending:
+            self.ray.wait(list(self.pending), num_returns=len(self.pending))
 
     def submit(self, _local_render, source: Path, output: Path, preset: Preset,
                options: ClipOptions, entry: ManifestEntry | None) -> Future:

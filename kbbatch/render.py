@@ -1,5 +1,10 @@
 """Point cloud from image + depth, and its forward-projection renderer (paper section 3.2).
 
+Points carry an alpha: the soft edge of a foreground layer (kbbatch.layers) is drawn with
+premultiplied alpha over the surface behind it. Each pixel keeps two surfaces, the front one
+and the nearest one behind it, so a soft edge is composited over what really lies behind it
+wherever the camera moves, instead of dragging its old background along.
+
 The kernels are compiled with numba and release the GIL, so frames render in parallel threads
 (one frame per thread keeps every frame bit-identical whatever the thread count).
 """
@@ -7,7 +12,7 @@ The kernels are compiled with numba and release the GIL, so frames render in par
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numba
@@ -39,6 +44,22 @@ class PointCloud:
     y: np.ndarray
     z: np.ndarray
     colour: np.ndarray  # (N, 3) uint8 RGB
+    alpha: np.ndarray | None = None
+    """(N,) uint8 coverage of each point, 255 = opaque (the default); below 255 only on the
+    soft edge of a foreground layer, whose colour is then its own, un-mixed. The opaque
+    points come first (the cloud is reordered so): opaque_count of them."""
+    opaque_count: int = field(init=False, default=0)
+
+    def __post_init__(self) -> None:
+        if self.alpha is None:
+            object.__setattr__(self, "alpha", np.full(self.z.shape[0], 255, np.uint8))
+        soft = self.alpha < 255
+        opaque_count = len(self) - int(soft.sum())
+        if soft[:opaque_count].any():  # opaque points first: the renderer splats them first
+            order = np.concatenate([np.flatnonzero(~soft), np.flatnonzero(soft)])
+            for name in ("x", "y", "z", "colour", "alpha"):
+                object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name)[order]))
+        object.__setattr__(self, "opaque_count", opaque_count)
 
     def __len__(self) -> int:
         return int(self.z.shape[0])
@@ -49,16 +70,21 @@ class PointCloud:
             np.concatenate([self.y, other.y]),
             np.concatenate([self.z, other.z]),
             np.concatenate([self.colour, other.colour]),
+            np.concatenate([self.alpha, other.alpha]),
         )
 
 
 @dataclass(frozen=True)
 class Rendering:
-    """One rendered view: colour, per-pixel depth (inf where empty) and splat weight."""
+    """One rendered view: colour, per-pixel depth (inf where empty) and splat weight.
+
+    Where a soft edge of alpha below one half lies over a surface, depth is that surface's."""
 
     colour: np.ndarray  # (H, W, 3) float32 RGB 0..255
     depth: np.ndarray  # (H, W) float32
     weight: np.ndarray  # (H, W) float32, 0 where no point landed
+    fringe: np.ndarray | None = None
+    """(H, W) bool: the front is a layer's soft edge, its colour a mix of two surfaces."""
 
     @property
     def covered(self) -> np.ndarray:
@@ -78,10 +104,12 @@ def back_project(
     depth: np.ndarray,
     view: View,
     keep: np.ndarray | None = None,
+    alpha: np.ndarray | None = None,
 ) -> PointCloud:
     """Points seen by a view: each pixel centre pushed out to its depth.
 
-    colour and depth must have the view's size; keep selects which pixels become points.
+    colour and depth (and alpha, uint8, when given) must have the view's size; keep selects
+    which pixels become points.
     """
     height, width = depth.shape
     if (width, height) != (view.width_px, view.height_px):
@@ -98,100 +126,158 @@ def back_project(
         np.ascontiguousarray(y + np.float32(view.position[1]), dtype=np.float32),
         np.ascontiguousarray(z + np.float32(view.position[2]), dtype=np.float32),
         np.ascontiguousarray(colour[rows, cols], dtype=np.uint8),
+        None if alpha is None else np.ascontiguousarray(alpha[rows, cols], dtype=np.uint8),
     )
 
 
-_WEIGHT = 3
+_WEIGHT = 3  # a cell holds red, green, blue weighted by weight x alpha, then the weight
+OPAQUE_ALPHA = 0.99
+"""A pixel whose front surface has at least this alpha hides whatever lies behind it."""
+
+
+@dataclass(frozen=True)
+class SplatBuffers:
+    """Per-pixel accumulation: the front surface, and behind soft edges the surface behind.
+
+    cell: the front's colour weighted by bilinear weight x alpha, and its summed weight (its
+    coverage); front: its inverse depth (0: none). Where a soft point touched a pixel in the
+    frame numbered stamp: clear, the summed weight x (1 - alpha) of the front (its alpha is
+    1 - clear / weight), and back / back_cell, the nearest surface behind it as the front's.
+    Opaque points only touch cell and front, as a plain z-buffer does: the soft state is
+    written by the few soft points alone, and the stamp says which pixels it is valid for.
+    """
+
+    cell: np.ndarray  # (H, W, 4) float32
+    front: np.ndarray  # (H, W) float32
+    stamp: np.ndarray  # (H, W) int32
+    clear: np.ndarray  # (H, W) float32
+    back: np.ndarray  # (H, W) float32
+    back_cell: np.ndarray  # (H, W, 4) float32
+
+    @classmethod
+    def empty(cls, height: int, width: int) -> SplatBuffers:
+        return cls(
+            np.zeros((height, width, 4), np.float32),
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width), np.int32),
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width), np.float32),
+            np.zeros((height, width, 4), np.float32),
+        )
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        return self.cell, self.front, self.stamp, self.clear, self.back, self.back_cell
+
+
 _buffers = threading.local()
 
 
-def _scratch(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-thread accumulation buffers, reused across frames (no page faults per frame)."""
+def _scratch(height: int, width: int) -> tuple[SplatBuffers, int]:
+    """Per-thread accumulation buffers, reused across frames (no page faults per frame), and
+    the number of this frame in them."""
     key = (height, width)
     if getattr(_buffers, "key", None) != key:
         _buffers.key = key
-        _buffers.accumulator = np.zeros((height, width, 4), np.float32)
-        _buffers.front = np.empty((height, width), np.float32)
-    return _buffers.accumulator, _buffers.front
+        _buffers.splats = SplatBuffers.empty(height, width)
+        _buffers.frame = 0
+    _buffers.frame = _buffers.frame % 2_000_000_000 + 1
+    return _buffers.splats, _buffers.frame
 
 
-def _splat_view(
-    cloud: PointCloud,
-    view: View,
-    disparity_scale: float,
-    accumulator: np.ndarray,
-    front: np.ndarray,
-    clear: bool = True,
-) -> None:
-    _splat_kernel(
-        cloud.x, cloud.y, cloud.z, cloud.colour,
+def _splat_view(cloud: PointCloud, view: View, disparity_scale: float,
+                buffers: SplatBuffers, frame: int) -> np.ndarray:
+    """Splat a view; returns the flat indices of the pixels that soft points touched."""
+    touched = np.empty(4 * (len(cloud) - cloud.opaque_count), np.int64)
+    count = _splat_kernel(
+        cloud.x, cloud.y, cloud.z, cloud.colour, cloud.alpha, cloud.opaque_count,
         np.float32(view.position[0]), np.float32(view.position[1]),
         np.float32(view.position[2]), np.float32(view.focal_px),
         np.float32(view.principal_x_px - 0.5), np.float32(view.principal_y_px - 0.5),
         np.float32(SOFT_Z_DISPARITY_PX / disparity_scale),
         np.float32(CRACK_DISPARITY_PX / disparity_scale),
-        accumulator, front, clear,
+        *buffers.arrays(), np.int32(frame), touched,
     )
-
-
-def _splat_new(cloud: PointCloud, view: View, disparity_scale: float
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Splat into new buffers. Interleaved (red, green, blue, weight): each splat touches one
-    16-byte cell; the front surface's inverse depth lives in its own compact array."""
-    accumulator = np.empty((view.height_px, view.width_px, 4), np.float32)
-    front = np.empty((view.height_px, view.width_px), np.float32)
-    _splat_view(cloud, view, disparity_scale, accumulator, front)
-    return accumulator, front
+    return touched[:count]
 
 
 def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
-    """Render a view: soft z-buffered bilinear splats, crack filter, normalise.
+    """Render a view: soft z-buffered bilinear splats, crack filter, composite, normalise.
 
     disparity_scale converts inverse depth into working disparity pixels (f * baseline), so
-    the tolerances mean the same at every output size.
+    the tolerances mean the same at every output size. A pixel counts as covered (weight > 0)
+    when its front surface is opaque or has a surface behind it; a soft edge over nothing is
+    a hole still to fill.
     """
-    accumulator, front = _splat_new(cloud, view, disparity_scale)
+    buffers = SplatBuffers.empty(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, buffers, 1)
     colour = np.empty((view.height_px, view.width_px, 3), np.float32)
     depth = np.empty((view.height_px, view.width_px), np.float32)
     weight = np.empty((view.height_px, view.width_px), np.float32)
-    _normalise_kernel(accumulator, front, colour, depth, weight)
-    return Rendering(colour, depth, weight)
+    _normalise_kernel(*buffers.arrays(), np.int32(1), colour, depth, weight)
+    fringe = (buffers.stamp == 1) & (buffers.clear > 0) & (buffers.front > 0)
+    return Rendering(colour, depth, weight, fringe)
 
 
 @numba.njit(cache=True, nogil=True)
-def _normalise_kernel(accumulator, front, colour, depth, weight):
+def _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, out):
+    """Pixel (yy, xx): the front over the back with premultiplied alpha; a soft front with
+    nothing behind it keeps its own colour. Returns whether the pixel is covered."""
+    weight = cell[yy, xx, _WEIGHT]
+    if stamp[yy, xx] != frame or clear[yy, xx] <= 0:  # opaque: the plain z-buffer's case
+        scale = np.float32(1.0) / weight
+        for c in range(3):
+            out[c] = cell[yy, xx, c] * scale
+        return True
+    alpha_sum = max(weight - clear[yy, xx], np.float32(0.0))
+    alpha = alpha_sum / weight
+    if back[yy, xx] > 0 and alpha < np.float32(OPAQUE_ALPHA):
+        back_scale = (np.float32(1.0) - alpha) / back_cell[yy, xx, _WEIGHT]
+        front_scale = np.float32(1.0) / weight
+        for c in range(3):
+            out[c] = cell[yy, xx, c] * front_scale + back_cell[yy, xx, c] * back_scale
+        return True
+    scale = np.float32(1.0) / max(alpha_sum, np.float32(MIN_SPLAT_WEIGHT * MIN_SPLAT_WEIGHT))
+    for c in range(3):
+        out[c] = cell[yy, xx, c] * scale
+    return alpha >= np.float32(0.5)  # a fringe mostly over nothing is a hole to fill
+
+
+@numba.njit(cache=True, nogil=True)
+def _normalise_kernel(cell, front, stamp, clear, back, back_cell, frame, colour, depth,
+                      weight):
     height, width = front.shape
     for yy in range(height):
         for xx in range(width):
-            w = accumulator[yy, xx, _WEIGHT]
-            if w > MIN_SPLAT_WEIGHT:
-                scale = np.float32(1.0) / w
-                for c in range(3):
-                    colour[yy, xx, c] = accumulator[yy, xx, c] * scale
-                depth[yy, xx] = np.float32(1.0) / front[yy, xx]
-                weight[yy, xx] = w
+            covered = False
+            if front[yy, xx] > 0:
+                covered = _composite(cell, stamp, clear, back, back_cell, frame, yy, xx,
+                                     colour[yy, xx])
+                surface = front[yy, xx]
+                if (stamp[yy, xx] == frame and back[yy, xx] > 0
+                        and clear[yy, xx] > np.float32(0.5) * cell[yy, xx, _WEIGHT]):
+                    surface = back[yy, xx]  # a faint fringe: the depth is the one behind
+                depth[yy, xx] = np.float32(1.0) / surface
             else:
                 for c in range(3):
                     colour[yy, xx, c] = 0.0
                 depth[yy, xx] = np.inf
-                weight[yy, xx] = 0.0
+            weight[yy, xx] = cell[yy, xx, _WEIGHT] if covered else np.float32(0.0)
 
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """Which pixels of a view the cloud covers (the planner's disocclusion test)."""
-    accumulator, _ = _splat_new(cloud, view, disparity_scale)
-    return accumulator[..., _WEIGHT] > MIN_SPLAT_WEIGHT
+    return render(cloud, view, disparity_scale).covered
 
 
 def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
     """A finished 8-bit frame: rendered, holes filled from the background side, rounded.
 
-    The same passes as render(), with normalising, filling and rounding fused into one.
+    The same passes as render(), with compositing, filling and rounding fused into one.
     """
-    accumulator, front = _scratch(view.height_px, view.width_px)
-    _splat_view(cloud, view, disparity_scale, accumulator, front, clear=False)
+    buffers, number = _scratch(view.height_px, view.width_px)
+    touched = _splat_view(cloud, view, disparity_scale, buffers, number)
     frame = np.empty((view.height_px, view.width_px, 3), np.uint8)
-    _finish_kernel(accumulator, front, frame)
+    _finish_kernel(*buffers.arrays(), touched, frame)
     return frame
 
 
@@ -246,28 +332,27 @@ def _corner(k, x0, y0, fx, fy, width, height):
 
 @numba.njit(cache=True, nogil=True)
 def _splat_kernel(
-    xs, ys, zs, colours, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z, crack_inv_z,
-    accumulator, front, clear,
+    xs, ys, zs, colours, alphas, opaque_count, cam_x, cam_y, cam_z, focal, ppx, ppy, soft_inv_z,
+    crack_inv_z, cell, front, stamp, clear, back, back_cell, frame, touched,
 ):
-    # One pass of soft z-buffering, then the crack filter. All arithmetic is float32: float64
-    # promotion made this loop two to three times slower.
+    # Opaque points first, in one pass of soft z-buffering exactly as a plain cloud; then the
+    # few soft points, which keep what lies behind them; then the crack filter. All
+    # arithmetic is float32: float64 promotion made this loop two to three times slower.
+    # cell arrives cleared (new, or left so by the finishing pass).
     height, width = front.shape
     one = np.float32(1.0)
-    if clear:  # render_frame's finishing pass leaves its buffer cleared for the next frame
-        accumulator[:] = 0.0
     front[:] = 0.0
     cols = np.empty(PROJECT_CHUNK, np.int32)
     rows = np.empty(PROJECT_CHUNK, np.int32)
     frac_x = np.empty(PROJECT_CHUNK, np.float32)
     frac_y = np.empty(PROJECT_CHUNK, np.float32)
     inv_zs = np.empty(PROJECT_CHUNK, np.float32)
-    count = zs.shape[0]
-    for start in range(0, count, PROJECT_CHUNK):
+    for start in range(0, opaque_count, PROJECT_CHUNK):
         _project_chunk(
             xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
             cols, rows, frac_x, frac_y, inv_zs,
         )
-        for j in range(min(PROJECT_CHUNK, count - start)):
+        for j in range(min(PROJECT_CHUNK, opaque_count - start)):
             x0 = cols[j]
             if x0 == _OUTSIDE:
                 continue
@@ -281,51 +366,128 @@ def _splat_kernel(
             b = np.float32(colours[i, 2])
             if x0 >= 0 and y0 >= 0 and x0 < width - 1 and y0 < height - 1:
                 # Interior: all four pixels exist (the common case, unrolled).
-                _soft_z(front, accumulator, y0, x0, (one - fx) * (one - fy), inv_z, soft_inv_z,
+                _soft_z(front, cell, y0, x0, (one - fx) * (one - fy), inv_z, soft_inv_z,
                         r, g, b)
-                _soft_z(front, accumulator, y0, x0 + 1, fx * (one - fy), inv_z, soft_inv_z,
+                _soft_z(front, cell, y0, x0 + 1, fx * (one - fy), inv_z, soft_inv_z,
                         r, g, b)
-                _soft_z(front, accumulator, y0 + 1, x0, (one - fx) * fy, inv_z, soft_inv_z,
+                _soft_z(front, cell, y0 + 1, x0, (one - fx) * fy, inv_z, soft_inv_z,
                         r, g, b)
-                _soft_z(front, accumulator, y0 + 1, x0 + 1, fx * fy, inv_z, soft_inv_z, r, g, b)
+                _soft_z(front, cell, y0 + 1, x0 + 1, fx * fy, inv_z, soft_inv_z, r, g, b)
                 continue
             for k in range(4):  # at the frame's edge: only the corners inside
                 inside, yy, xx, w = _corner(k, x0, y0, fx, fy, width, height)
                 if inside:
-                    _soft_z(front, accumulator, yy, xx, w, inv_z, soft_inv_z, r, g, b)
-    _clear_cracks(front, accumulator, crack_inv_z)
+                    _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b)
+    to_unit = np.float32(1.0 / 255.0)
+    touched_count = 0
+    count = zs.shape[0]
+    for start in range(opaque_count, count, PROJECT_CHUNK):
+        _project_chunk(
+            xs, ys, zs, start, cam_x, cam_y, cam_z, focal, ppx, ppy, width, height,
+            cols, rows, frac_x, frac_y, inv_zs,
+        )
+        for j in range(min(PROJECT_CHUNK, count - start)):
+            x0 = cols[j]
+            if x0 == _OUTSIDE:
+                continue
+            i = start + j
+            a = np.float32(alphas[i]) * to_unit
+            r = np.float32(colours[i, 0])
+            g = np.float32(colours[i, 1])
+            b = np.float32(colours[i, 2])
+            for k in range(4):
+                inside, yy, xx, w = _corner(k, x0, rows[j], frac_x[j], frac_y[j], width,
+                                            height)
+                if inside and w > np.float32(MIN_SPLAT_WEIGHT):
+                    if stamp[yy, xx] != frame:
+                        stamp[yy, xx] = frame
+                        clear[yy, xx] = 0.0
+                        back[yy, xx] = 0.0
+                        touched[touched_count] = yy * width + xx
+                        touched_count += 1
+                    _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_zs[j],
+                                  soft_inv_z, a, r, g, b)
+    _clear_cracks(front, cell, stamp, clear, back, frame, touched[:touched_count], crack_inv_z)
+    return touched_count
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _soft_z(front, accumulator, yy, xx, w, inv_z, soft_inv_z, r, g, b):
-    """Splat one bilinear corner with soft z-buffering.
+def _soft_z(front, cell, yy, xx, w, inv_z, soft_inv_z, r, g, b):
+    """Splat one bilinear corner of an opaque point with soft z-buffering.
 
     A point clearly nearer than the pixel's front surface restarts the pixel, one within
     soft_inv_z of it blends in, and a farther one is hidden. The front is raised with max(),
     not a branch: which of two blending points is nearer is a coin toss the CPU mispredicts.
+    (Keep front first in the arguments: numba's code for this loop was 50 % slower with the
+    two arrays swapped.)
     """
     if w <= np.float32(MIN_SPLAT_WEIGHT):
         return
     surface = front[yy, xx]
     if surface < inv_z - soft_inv_z:
         front[yy, xx] = inv_z
-        accumulator[yy, xx, 0] = w * r
-        accumulator[yy, xx, 1] = w * g
-        accumulator[yy, xx, 2] = w * b
-        accumulator[yy, xx, _WEIGHT] = w
+        cell[yy, xx, 0] = w * r
+        cell[yy, xx, 1] = w * g
+        cell[yy, xx, 2] = w * b
+        cell[yy, xx, _WEIGHT] = w
     elif surface <= inv_z + soft_inv_z:
         front[yy, xx] = max(surface, inv_z)
-        accumulator[yy, xx, 0] += w * r
-        accumulator[yy, xx, 1] += w * g
-        accumulator[yy, xx, 2] += w * b
-        accumulator[yy, xx, _WEIGHT] += w
+        cell[yy, xx, 0] += w * r
+        cell[yy, xx, 1] += w * g
+        cell[yy, xx, 2] += w * b
+        cell[yy, xx, _WEIGHT] += w
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_inv_z, a, r, g,
+                  b):
+    """Splat one bilinear corner of a soft point (after every opaque one).
+
+    As _soft_z, but a soft point that starts a new front keeps the old front as the pixel's
+    back, and while the front is soft, farther soft points go the same way into the back.
+    """
+    wa = w * a
+    surface = front[yy, xx]
+    if surface < inv_z - soft_inv_z:
+        if surface > 0:
+            for c in range(4):
+                back_cell[yy, xx, c] = cell[yy, xx, c]
+            back[yy, xx] = surface
+        front[yy, xx] = inv_z
+        cell[yy, xx, 0] = wa * r
+        cell[yy, xx, 1] = wa * g
+        cell[yy, xx, 2] = wa * b
+        cell[yy, xx, _WEIGHT] = w
+        clear[yy, xx] = w - wa
+    elif surface <= inv_z + soft_inv_z:
+        front[yy, xx] = max(surface, inv_z)
+        cell[yy, xx, 0] += wa * r
+        cell[yy, xx, 1] += wa * g
+        cell[yy, xx, 2] += wa * b
+        cell[yy, xx, _WEIGHT] += w
+        clear[yy, xx] += w - wa
+    elif clear[yy, xx] > 0:  # behind a soft front: z-buffered into the back surface
+        _soft_z(back, back_cell, yy, xx, wa, inv_z, soft_inv_z, r, g, b)
 
 
 @numba.njit(cache=True, nogil=True)
-def _clear_cracks(front, accumulator, crack_inv_z):
+def _clear_cracks(front, cell, stamp, clear, back, frame, touched, crack_inv_z):
     """Empty the pixels where background shines through a crack in a magnified foreground:
-    two opposite neighbours are nearer by crack_inv_z. They are filled like any hole."""
+    two opposite neighbours are nearer by crack_inv_z. They are filled like any hole.
+
+    Only solid surfaces count: where the front is a soft edge of alpha below one half, the
+    surface behind it is the pixel's solid one, so the fringe of an object is never taken
+    for a crack around it."""
     height, width = front.shape
+    # Where soft points touched, the solid depth stands in for the front while filtering.
+    fronts = np.empty(touched.shape[0], np.float32)
+    for k in range(touched.shape[0]):
+        yy = touched[k] // width
+        xx = touched[k] % width
+        fronts[k] = front[yy, xx]
+        weight = cell[yy, xx, _WEIGHT]
+        if clear[yy, xx] > 0 and weight - clear[yy, xx] < np.float32(0.5) * weight:
+            front[yy, xx] = back[yy, xx]  # mostly see-through: the surface behind counts
     # Only the unfiltered row above and the current row are kept: the row below is untouched yet.
     above = front[0].copy()
     row = np.empty_like(above)
@@ -340,32 +502,45 @@ def _clear_cracks(front, accumulator, crack_inv_z):
                 or (above[xx] > threshold and below[xx] > threshold)
                 or (above[xx - 1] > threshold and below[xx + 1] > threshold)
                 or (above[xx + 1] > threshold and below[xx - 1] > threshold)
-            ):
+            ) and not (stamp[yy, xx] == frame and clear[yy, xx] > 0):  # a soft edge is no crack
                 front[yy, xx] = 0.0
-                accumulator[yy, xx, :] = 0.0
+                cell[yy, xx, :] = 0.0
         above, row = row, above
+    for k in range(touched.shape[0]):
+        yy = touched[k] // width
+        xx = touched[k] % width
+        if cell[yy, xx, _WEIGHT] > 0:  # not emptied as a crack
+            front[yy, xx] = fronts[k]
 
 
 @numba.njit(cache=True, nogil=True)
-def _finish_kernel(accumulator, front, frame):
-    """Normalise, round, and give every empty pixel the colour of the farthest covered pixel
-    found along its row and column (a cheap fill from the background side). Leaves the
-    accumulator cleared for the next frame; front keeps 0 where a pixel was empty."""
+def _finish_kernel(cell, front, stamp, clear, back, back_cell, touched, image):
+    """Composite, round, and give every empty pixel the colour of the farthest covered pixel
+    found along its row and column (a cheap fill from the background side). Leaves cell
+    cleared for the next frame; front keeps 0 where a pixel was empty."""
     height, width = front.shape
+    pixel = np.empty(3, np.float32)
+    for index in touched:  # soft pixels: their composite, premultiplied by the weight
+        yy = index // width
+        xx = index % width
+        weight = cell[yy, xx, _WEIGHT]
+        if front[yy, xx] > 0 and weight > 0 and clear[yy, xx] > 0:
+            _composite(cell, stamp, clear, back, back_cell, stamp[yy, xx], yy, xx, pixel)
+            for c in range(3):
+                cell[yy, xx, c] = pixel[c] * weight
+            clear[yy, xx] = 0.0
     empty = 0
     for yy in range(height):
         for xx in range(width):
-            cell = accumulator[yy, xx]
-            w = cell[_WEIGHT]
-            if w > MIN_SPLAT_WEIGHT:
-                scale = np.float32(1.0) / w
+            here = cell[yy, xx]
+            if front[yy, xx] > 0:
+                scale = np.float32(1.0) / here[_WEIGHT]
                 for c in range(3):
-                    frame[yy, xx, c] = min(255, int(cell[c] * scale + np.float32(0.5)))
+                    image[yy, xx, c] = min(255, int(here[c] * scale + np.float32(0.5)))
             else:
-                front[yy, xx] = 0.0
                 empty += 1
             for c in range(4):
-                cell[c] = 0.0
+                here[c] = 0.0
     if empty == 0:
         return
     for yy in range(height):
@@ -386,7 +561,7 @@ def _finish_kernel(accumulator, front, frame):
                     best_y = cy
                     best_x = cx
             for c in range(3):
-                frame[yy, xx, c] = frame[best_y, best_x, c] if best_y >= 0 else 0
+                image[yy, xx, c] = image[best_y, best_x, c] if best_y >= 0 else 0
 
 
 def to_uint8(colour: np.ndarray) -> np.ndarray:

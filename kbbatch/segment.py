@@ -46,6 +46,40 @@ SALIENT_THRESHOLD = 0.5
 MASK_ERODE_PX = 2
 """Masks are eroded slightly before adjustment, as the paper does, at the working size."""
 
+FRAGMENT_MIN_FRACTION = 0.1
+"""A piece of an instance's mask smaller than this fraction of its largest piece is dropped:
+no loose sliver of a suit or shard of curtain becomes a card of its own."""
+
+FRAGMENT_MIN_PX = 400
+"""... and so is any piece under this many pixels at the working size (about 20 x 20)."""
+
+SLIVER_OPEN_PX = 2
+"""Masks are opened (eroded then dilated) by this radius: strands thinner than twice it go."""
+
+HOLE_FILL_MAX_FRACTION = 0.05
+"""Holes inside a mask smaller than this fraction of its area are filled (a gap between
+fingers stays background, a speckle in a shirt does not)."""
+
+BOX_CORE_FRACTION = 0.5
+"""An instance keeps the mask pieces that reach the central part of its box (this share of its
+width and height), and those mostly outside other objects' boxes: a neighbour's arm or
+shoulder inside the box is not this person, a leg cut off by a pole is."""
+
+HEAD_FRACTION = 0.2
+"""The top of a person box, this share of its height, holds the head: the face region that
+no cleaning removes and no other card takes..."""
+
+HEAD_WIDTH_FRACTION = 0.6
+"""... in the central part of the box, this share of its width."""
+
+GROUP_TOUCH_PX = 12
+"""Cards whose masks come within twice this distance (working px) touch: overlapping people, or
+people with a sliver of background between them (a row or column gap up to twice this), which
+joins their group card rather than float between them as a shard."""
+
+GROUP_DISPARITY_TOLERANCE = 0.15
+"""Touching cards whose disparities differ by at most this fraction become one group card."""
+
 
 @dataclass(frozen=True)
 class Detection:
@@ -60,6 +94,7 @@ class Instance:
     score: float
     box: tuple[int, int, int, int]
     mask: np.ndarray  # (H, W) bool
+    face: np.ndarray | None = None  # (H, W) bool: a person's head region, kept whole
 
 
 def available(name: str) -> bool:
@@ -146,6 +181,125 @@ def _box_mask(shape: tuple[int, int], box: tuple[float, float, float, float]) ->
     return mask
 
 
+def _box_core(shape: tuple[int, int], box: tuple[float, float, float, float]) -> np.ndarray:
+    x0, y0, x1, y1 = box
+    margin_x = (1 - BOX_CORE_FRACTION) / 2 * (x1 - x0)
+    margin_y = (1 - BOX_CORE_FRACTION) / 2 * (y1 - y0)
+    return _box_mask(shape, (x0 + margin_x, y0 + margin_y, x1 - margin_x, y1 - margin_y))
+
+
+def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) -> np.ndarray:
+    """The head (face) part of a person box: its top HEAD_FRACTION, central HEAD_WIDTH_FRACTION
+    (a flag or a lamp beside the head is not protected as a face), in image pixels."""
+    x0, y0, x1, y1 = box
+    margin = (1 - HEAD_WIDTH_FRACTION) / 2 * (x1 - x0)
+    return _box_mask(shape, (x0 + margin, y0, x1 - margin, y0 + HEAD_FRACTION * (y1 - y0)))
+
+
+def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """The connected pieces of mask that reach core, or lie mostly outside others (the other
+    objects' boxes): a piece cut off by an occluder stays, a neighbour's arm does not."""
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    area = np.bincount(labels.ravel(), minlength=count)
+    contested = np.bincount(labels[others].ravel(), minlength=count)
+    reaching = np.zeros(count, bool)
+    reaching[np.unique(labels[core & mask])] = True
+    keep = reaching | (contested < 0.5 * area)
+    keep[0] = False
+    return keep[labels]
+
+
+def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """A mask without slivers, speckle holes or small loose pieces.
+
+    Opening removes thin strands; holes under HOLE_FILL_MAX_FRACTION of the area are filled;
+    pieces under FRAGMENT_MIN_FRACTION of the largest one or FRAGMENT_MIN_PX are dropped.
+    Pixels of keep (a face) that were in the mask stay in it, whole.
+    """
+    binary = mask.astype(np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SLIVER_OPEN_PX + 1,) * 2)
+    opened = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
+    if keep is not None:
+        opened |= (binary.astype(bool) & keep).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(1 - opened, connectivity=4)
+    area = int(opened.sum())
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    small_holes = [k for k in range(1, count) if k not in border
+                   and stats[k, cv2.CC_STAT_AREA] < HOLE_FILL_MAX_FRACTION * area]
+    filled = opened.astype(bool) | np.isin(labels, small_holes)
+    return drop_fragments(filled, keep)
+
+
+def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """mask without pieces under FRAGMENT_MIN_FRACTION of its largest or FRAGMENT_MIN_PX;
+    the piece holding most of keep (the face) always stays."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
+                                                               connectivity=8)
+    if count <= 1:
+        return mask.astype(bool)
+    areas = stats[:, cv2.CC_STAT_AREA]
+    minimum = max(FRAGMENT_MIN_FRACTION * areas[1:].max(), FRAGMENT_MIN_PX)
+    kept = areas >= minimum
+    if keep is not None:
+        in_face = np.bincount(labels[keep & mask], minlength=count)
+        in_face[0] = 0
+        if in_face.max() > 0:
+            kept[int(np.argmax(in_face))] = True
+    kept[0] = False
+    return kept[labels]
+
+
+def group_cards(masks: list[np.ndarray], disparities: list[float]
+                ) -> list[tuple[np.ndarray, float]]:
+    """Cards that touch at a similar disparity joined into one group card (a crowd, a couple).
+
+    A group takes its nearest member's disparity, so no member moves behind the others and no
+    crack opens between people who stand together.
+    """
+    count = len(masks)
+    parent = list(range(count))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * GROUP_TOUCH_PX + 1,) * 2)
+    grown = [cv2.dilate(m.astype(np.uint8), kernel).astype(bool) for m in masks]
+    for a in range(count):
+        for b in range(a + 1, count):
+            near = max(disparities[a], disparities[b])
+            similar = abs(disparities[a] - disparities[b]) <= GROUP_DISPARITY_TOLERANCE * near
+            if similar and (grown[a] & grown[b]).any():
+                parent[root(a)] = root(b)
+    members: dict[int, list[int]] = {}
+    for k in range(count):
+        members.setdefault(root(k), []).append(k)
+    cards = []
+    for group in members.values():
+        owner = np.full(masks[group[0]].shape, -1, np.int32)
+        for k in group:
+            owner[masks[k] & (owner < 0)] = k
+        mask = (owner >= 0) | bridge_gaps(owner, 2 * GROUP_TOUCH_PX)
+        cards.append((mask, max(disparities[k] for k in group)))
+    return cards
+
+
+def bridge_gaps(owner: np.ndarray, max_gap_px: int) -> np.ndarray:
+    """Pixels on a straight row or column run between two different members' pixels, at most
+    max_gap_px long: the background seen between people standing together."""
+    bridge = np.zeros(owner.shape, bool)
+    for grid, out in ((owner, bridge), (owner.T, bridge.T)):
+        rows, cols = np.nonzero(grid >= 0)
+        same_row = rows[1:] == rows[:-1]
+        gap = cols[1:] - cols[:-1] - 1
+        between = grid[rows[1:], cols[1:]] != grid[rows[:-1], cols[:-1]]
+        for k in np.nonzero(same_row & between & (gap > 0) & (gap <= max_gap_px))[0]:
+            out[rows[k], cols[k] + 1:cols[k + 1]] = True
+    return bridge
+
+
 def find_instances(image: np.ndarray) -> list[Instance]:
     """Salient objects (people, vehicles, animals) with masks, following the paper's rules."""
     shape = image.shape[:2]
@@ -156,6 +310,11 @@ def find_instances(image: np.ndarray) -> list[Instance]:
     labels = semantic_labels(image)
     salient = saliency > SALIENT_THRESHOLD if saliency is not None else None
 
+    objects = [
+        d for d in detections
+        if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
+    ]
+
     def shape_mask(detection: Detection) -> np.ndarray:
         in_box = _box_mask(shape, detection.box)
         parts = []
@@ -165,12 +324,13 @@ def find_instances(image: np.ndarray) -> list[Instance]:
             parts.append(salient)
         if not parts:
             return in_box
-        return in_box & np.logical_or.reduce(parts)
+        others = np.zeros(shape, bool)
+        for other in objects:
+            if other is not detection:
+                others |= _box_mask(shape, other.box)
+        return own_pieces(in_box & np.logical_or.reduce(parts),
+                          _box_core(shape, detection.box), others)
 
-    objects = [
-        d for d in detections
-        if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
-    ]
     accessories = [d for d in detections if d.class_name in paper.ACCESSORY_CLASSES]
     masks = [shape_mask(d) for d in objects]
     for accessory in accessories:
@@ -183,13 +343,25 @@ def find_instances(image: np.ndarray) -> list[Instance]:
             best = int(np.argmax(overlaps))
             masks[best] = masks[best] | accessory_mask
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * MASK_ERODE_PX + 1,) * 2)
-    instances = []
-    for detection, mask in zip(objects, masks, strict=True):
+    heads = [head_region(d.box, shape) if d.class_name == "person" else None for d in objects]
+    kept = []
+    for detection, mask, head in zip(objects, masks, heads, strict=True):
+        mask = clean_mask(mask, keep=head)
+        face = mask & head if head is not None else None
         mask = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
-        if mask.sum() < paper.SALIENT_MASK_MIN_PX:
+        if face is not None:  # the face is never shaved: it stays whole on its card
+            mask |= face
+        kept.append((detection, mask, face))
+    instances = []
+    for detection, mask, face in kept:
+        for _, _, other_face in kept:  # nor taken by another card
+            if other_face is not None and other_face is not face:
+                mask = mask & ~other_face
+        mask = drop_fragments(mask, face)
+        if mask.sum() < max(paper.SALIENT_MASK_MIN_PX, FRAGMENT_MIN_PX):
             continue
         ys, xs = np.nonzero(mask)
         box = (int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1)
-        instances.append(Instance(detection.class_name, detection.score, box, mask))
+        instances.append(Instance(detection.class_name, detection.score, box, mask, face))
     log.debug("found %d salient instance(s)", len(instances))
     return instances

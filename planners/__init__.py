@@ -1,7 +1,8 @@
 """Camera planners: plug-ins that choose the start and end crop of each clip.
 
 A planner is any object with a `name` and a `plan(request) -> Plan` method. Register new
-ones in PLANNERS; the CLI's --planner and the manifest pick them by name.
+ones in PLANNERS; the CLI's --planner and the manifest pick them by name (a manifest
+entry with crops may name `2d` only: its crops, rendered without parallax).
 """
 
 from __future__ import annotations
@@ -35,18 +36,18 @@ class UnknownPlannerError(ValueError):
 
 
 def get_planner(name: str) -> Planner:
-    """A planner by name."""
-    from planners.auto import AutoPlanner
-    from planners.center import CenterPlanner, TwoDPlanner
-
-    known: dict[str, Planner] = {
-        "auto": AutoPlanner(), "center": CenterPlanner(), "2d": TwoDPlanner(),
-    }
-    if name not in known:
+    """A registered planner by name."""
+    if name not in PLANNERS:
         raise UnknownPlannerError(
-            f"unknown planner {name!r}; available: {', '.join(sorted(known))}"
+            f"unknown planner {name!r}; available: {', '.join(PLANNER_NAMES)}"
         )
-    return known[name]
+    return PLANNERS[name]
 
 
-PLANNER_NAMES = ("auto", "center", "2d")
+# The registry: the CLI's --planner choices and the manifest's "planner" both come from it.
+# Imported last because the planners import PlanRequest from this module.
+from kbbatch.planners.auto import AutoPlanner  # noqa: E402
+from kbbatch.planners.center import CenterPlanner, TwoDPlanner  # noqa: E402
+
+PLANNERS: dict[str, Planner] = {p.name: p for p in (AutoPlanner(), CenterPlanner(), TwoDPlanner())}
+PLANNER_NAMES = tuple(PLANNERS)

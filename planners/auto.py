@@ -25,8 +25,8 @@ from kbbatch.camera import (
     zoomed,
 )
 from kbbatch.inpaint import visible_region
+from kbbatch.planners import PlanRequest
 from kbbatch.render import PointCloud, back_project, coverage, depth_edges
-from planners import PlanRequest
 
 SEARCH_LONG_SIDE_PX = 256
 """Candidates are rendered at this long side (a quarter of the working size)."""

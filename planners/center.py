@@ -6,7 +6,7 @@ from dataclasses import replace
 
 from kbbatch import paper
 from kbbatch.camera import Plan, fit_crop, zoomed
-from planners import PlanRequest
+from kbbatch.planners import PlanRequest
 
 
 def centred_plan(request: PlanRequest, name: str) -> Plan:

@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 
@@ -18,7 +19,7 @@ from kbbatch.camera import (
     zoomed,
 )
 from kbbatch.inpaint import build_extended_cloud
-from kbbatch.render import back_project, render, to_uint8
+from kbbatch.render import back_project, depth_edges, render, to_uint8
 
 from .conftest import textured_image
 
@@ -101,7 +102,13 @@ def test_t0_with_the_full_crop_reproduces_the_input():
     cloud = build_extended_cloud(image, depth, plan, scene).cloud
     frame = render(cloud, output_view(plan, scene, 0.0, W, H), scene.focal_px * 40)
     assert frame.covered.all()
-    np.testing.assert_array_equal(to_uint8(frame.colour), image)
+    error = np.abs(to_uint8(frame.colour).astype(int) - image).max(axis=-1)
+    # Away from depth edges the photo comes back exactly. Pixels at an edge are two layers
+    # (object over background) composited; where the object's un-mixed colour would leave
+    # the 8-bit range it is clipped, so such a pixel may differ a little, never a lot.
+    edge_band = cv2.dilate(depth_edges(depth).astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
+    assert error[~edge_band].max() == 0
+    assert error.max() <= 20 and (error > 2).mean() < 0.005
 
 
 def test_plain_cloud_at_the_photo_view_is_the_photo():

@@ -148,3 +148,38 @@ def test_real_semantic_labels_follow_the_outline_not_the_networks_grid(monkeypat
     # network's 257-column grid can only change at about 257 places, a real outline anywhere.
     changes = np.nonzero(person[:, 1:] != person[:, :-1])[1]
     assert len(np.unique(changes)) > 300, "the mask outline is a staircase of the network grid"
+
+
+def test_scene_contexts_are_freed_after_each_photo(tmp_path, monkeypatch):
+    """A daemon processes photos for days: no photo's image or masks may outlive its depth."""
+    import gc
+    import weakref
+
+    from kbbatch import depth as depth_stage
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(tmp_path))  # no models: segmentation is quick
+    alive: list[weakref.ref] = []
+    created = depth_stage.SceneContext.__init__
+
+    def tracked_init(self, image):
+        created(self, image)
+        alive.append(weakref.ref(self))
+
+    monkeypatch.setattr(depth_stage.SceneContext, "__init__", tracked_init)
+    for seed in range(30):
+        image = textured_image(120, 160, seed=seed)
+        depth_stage.estimate_disparity(image, None, depth_stage.DepthOptions(backend="popup"))
+    gc.collect()
+    assert len(alive) == 30
+    assert [ref for ref in alive if ref() is not None] == []
+
+
+def test_scene_context_segments_a_photo_once(monkeypatch):
+    from kbbatch import segment
+    from kbbatch.depth import SceneContext
+
+    calls = []
+    monkeypatch.setattr(segment, "find_instances", lambda image: calls.append(1) or [])
+    context = SceneContext(textured_image(60, 80, seed=1))
+    assert context.instances == [] and context.instances == []
+    assert len(calls) == 1

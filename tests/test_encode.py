@@ -1,10 +1,19 @@
 import os
+import subprocess
 
 import numpy as np
 import pytest
 
-from kbbatch.encode import decode_frames, encode_frames, ffmpeg_exe, palindrome_order, probe
-from kbbatch.presets import load_preset, with_overrides
+from kbbatch.encode import (
+    EncodeError,
+    check_encoder,
+    decode_frames,
+    encode_frames,
+    ffmpeg_exe,
+    palindrome_order,
+    probe,
+)
+from kbbatch.presets import builtin_names, load_preset, with_overrides
 
 
 def test_palindrome_order():
@@ -12,8 +21,19 @@ def test_palindrome_order():
     assert palindrome_order(2) == [0, 1]
 
 
-def test_ffmpeg_is_found():
-    assert ffmpeg_exe()
+def test_ffmpeg_runs_and_offers_the_shipped_presets_encoders():
+    version = subprocess.run([ffmpeg_exe(), "-version"], capture_output=True, text=True,
+                             check=True).stdout
+    assert version.startswith("ffmpeg version")
+    for name in builtin_names():
+        check_encoder(load_preset(name))  # raises EncoderError where this ffmpeg cannot
+
+
+def test_probe_refuses_what_is_not_a_video(tmp_path):
+    (tmp_path / "notes.mp4").write_text("not a video")
+    with pytest.raises(EncodeError, match=r"notes.mp4: ffmpeg found no video stream \(.*"
+                                          r"Invalid data"):
+        probe(tmp_path / "notes.mp4")
 
 
 def test_palindromic_clip_decodes_with_the_preset_facts(tmp_path):
@@ -44,7 +64,7 @@ def test_palindromic_clip_decodes_with_the_preset_facts(tmp_path):
 
 def test_wrong_frame_size_is_refused(tmp_path):
     preset = with_overrides(load_preset("preview"), duration_s=0.4, fps=10.0)
-    with pytest.raises(Exception, match="expected"):
+    with pytest.raises(EncodeError, match=r"frame 0 has shape \(10, 10, 3\) uint8, expected"):
         encode_frames(tmp_path / "x.mp4", [np.zeros((10, 10, 3), np.uint8)], preset)
 
 
@@ -86,7 +106,7 @@ def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, 
     import sys
     import tempfile
 
-    from kbbatch.batch import SCRATCH_PREFIX, ClipOptions, run_folder
+    from kbbatch.batch import SCRATCH_PREFIX, ClipOptions, EmptyFolderError, run_folder
     from kbbatch.presets import load_preset
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
@@ -99,7 +119,8 @@ def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, 
         folder.mkdir()
         (folder / "frames.npy").write_bytes(b"\0" * 1024)
     (tmp_path / "photos").mkdir()
-    run_folder(tmp_path / "photos", tmp_path / "out", load_preset("preview"),
-               ClipOptions(threads=1), show_progress=False)
+    with pytest.raises(EmptyFolderError):  # the clean-up comes first, even with no photos
+        run_folder(tmp_path / "photos", tmp_path / "out", load_preset("preview"),
+                   ClipOptions(threads=1), show_progress=False)
     assert not stale.exists(), "a dead process's frame store must be removed"
     assert live.exists(), "a running process's frame store must be kept"

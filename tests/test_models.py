@@ -6,7 +6,6 @@ import threading
 from dataclasses import replace
 
 import numpy as np
-import onnx
 import pytest
 from onnx import TensorProto, helper
 
@@ -120,5 +119,29 @@ def test_onnx_backend_pre_and_post_processing(tmp_path, monkeypatch):
                                                        None, None)
 
 
-def test_tiny_model_is_valid_onnx():
-    onnx.checker.check_model(onnx.load_from_string(tiny_depth_model()))
+def test_sessions_take_their_share_of_the_cores_and_the_chosen_provider(tmp_path, monkeypatch):
+    path = tmp_path / "tiny.onnx"
+    path.write_bytes(tiny_depth_model())
+    cores = models.usable_cores()
+    monkeypatch.delenv(models.PROVIDER_ENV, raising=False)
+    try:
+        models.share_cores(1)
+        alone = models.session(path)
+        assert alone.get_session_options().intra_op_num_threads == cores
+        assert alone.get_session_options().inter_op_num_threads == 1
+        models.share_cores(cores)  # one job per core: one thread each
+        assert models.session(path).get_session_options().intra_op_num_threads == 1
+        models.share_cores(4 * cores)  # never below one thread
+        assert models.session(path).get_session_options().intra_op_num_threads == 1
+    finally:
+        models.share_cores(1)
+    monkeypatch.setenv(models.PROVIDER_ENV, "cpu")
+    assert models.session(path).get_providers() == ["CPUExecutionProvider"]
+    import onnxruntime
+
+    if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
+        assert models.execution_provider() == "CPUExecutionProvider"
+        monkeypatch.setenv(models.PROVIDER_ENV, "cuda")
+        with pytest.raises(models.ModelError, match="KBBATCH_PROVIDER=cuda: this onnxruntime "
+                                                    "offers .*CPUExecutionProvider"):
+            models.execution_provider()

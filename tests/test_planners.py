@@ -9,10 +9,10 @@ import pytest
 from kbbatch import paper
 from kbbatch.batch import ClipOptions, plan_folder, run_folder
 from kbbatch.camera import Crop, depth_from_disparity
-from kbbatch.manifest import ManifestError, load_manifest
+from kbbatch.manifest import ManifestError, load_manifest, plan_to_entry
+from kbbatch.planners import PlanRequest, get_planner
+from kbbatch.planners.auto import plan_disocclusion
 from kbbatch.presets import load_preset, with_overrides
-from planners import PlanRequest, get_planner
-from planners.auto import plan_disocclusion
 
 from .conftest import shared_photos, textured_image
 
@@ -59,12 +59,6 @@ def test_auto_reveals_less_than_center_on_a_card_scene():
     assert plan_disocclusion(request, auto) < center_value
 
 
-def test_search_is_deterministic():
-    request = request_for(1024, 576, "slideshow", disparity=card_scene())
-    plans = [get_planner("auto").plan(request) for _ in range(3)]
-    assert plans[0] == plans[1] == plans[2]
-
-
 def test_a_wide_preset_on_a_tall_thin_photo_still_plans():
     plan = get_planner("auto").plan(request_for(200, 1024, "slideshow", max_shift_px=300))
     assert plan.end.inside(200, 1024) and plan.start.inside(200, 1024)
@@ -91,6 +85,43 @@ def test_schema_errors_name_the_manifest_image_and_field(tmp_path, data, message
     with pytest.raises(ManifestError, match="m.json") as caught:
         load_manifest(path)
     assert message in str(caught.value)
+
+
+def test_fraction_units_are_of_the_photos_width_and_height(tmp_path):
+    path = write(tmp_path / "m.json", {"images": {"a.jpg": {
+        "units": "fraction", "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.9},
+        "end": {"center_x": 0.25, "center_y": 0.75, "width": 0.4, "height": 0.4}}}})
+    # A 2000 x 2000 photo at working width 1024; a square output.
+    plan = load_manifest(path).entry("a.jpg").plan(2000, 2000, 1024, 1.0, "linear")
+    to_working = 1024 / 2000
+    assert plan.start == Crop(1000 * to_working, 1000 * to_working, 1800 * to_working,
+                              1800 * to_working)
+    assert plan.end == Crop(500 * to_working, 1500 * to_working, 800 * to_working,
+                            800 * to_working)
+    assert plan.parallax
+
+
+def test_crops_with_a_planner_are_refused_except_2d_which_drops_parallax(tmp_path):
+    crops = {"start": CROP, "end": {**CROP, "width": 0.6}, "units": "fraction"}
+    with pytest.raises(ManifestError, match=r"image 'a.jpg': field 'planner': the entry gives "
+                                            r"crops and planner 'auto'.*'2d'"):
+        load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": {**crops,
+                                                                        "planner": "auto"}}}))
+    with pytest.raises(ManifestError, match=r"unknown planner 'fancy'; available: auto, center"):
+        load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": {"planner": "fancy"}}}))
+    entry = load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": {
+        **crops, "planner": "2d"}}})).entry("a.jpg")
+    plan = entry.plan(1600, 900, 1024, 16 / 9, "linear")
+    assert not plan.parallax
+    assert plan.start.width_px == pytest.approx(0.9 * 1024)
+    # What `kbbatch plan --planner 2d` writes renders as 2D again.
+    request = request_for(1024, 576, "slideshow")
+    flat = get_planner("2d").plan(request)
+    written = plan_to_entry(flat, 1024, 1024)
+    assert written["planner"] == "2d"
+    assert "planner" not in plan_to_entry(get_planner("center").plan(request), 1024, 1024)
+    reread = load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": written}}))
+    assert not reread.entry("a.jpg").plan(1024, 576, 1024, 16 / 9, "linear").parallax
 
 
 def test_crop_outside_the_photo_is_refused(tmp_path):

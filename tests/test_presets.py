@@ -1,44 +1,115 @@
+import tomllib
+from importlib import resources
+
 import pytest
+from click.testing import CliRunner
 
-from kbbatch.presets import PresetError, builtin_names, load_preset, with_overrides
-
-SHIPPED = {
-    "slideshow": (1920, 1080, 30), "social": (1080, 1920, 30), "square": (1080, 1080, 30),
-    "preview": (640, 360, 25), "4k": (3840, 2160, 30),
-}
+from kbbatch.cli import main
+from kbbatch.presets import PresetError, builtin_names, load_preset, schema, with_overrides
 
 
-def test_shipped_presets_load_with_their_sizes():
-    assert set(SHIPPED) <= set(builtin_names())
-    for name, (width, height, fps) in SHIPPED.items():
+def test_every_shipped_preset_loads_as_its_file_says():
+    assert {"slideshow", "social", "square", "preview", "4k", "reference"} <= set(builtin_names())
+    for name in builtin_names():
+        data = tomllib.loads(resources.files("kbbatch.presets").joinpath(f"{name}.toml")
+                             .read_text())
         preset = load_preset(name)
-        assert (preset.width_px, preset.height_px, preset.fps) == (width, height, fps)
+        assert preset.name == name
+        for setting, value in data.items():
+            assert getattr(preset, setting) == value, (name, setting)
         assert preset.frames_total == 2 * preset.frames_forward - 2
 
 
-def test_preset_from_path_and_errors_name_the_field(tmp_path):
-    text = (tmp_path / "mine.toml")
-    base = (load_preset("preview"))
-    lines = [f'{k} = {v!r}'.replace("'", '"') for k, v in vars(base).items() if k != "name"]
-    text.write_text("\n".join(lines))
-    assert load_preset(str(text)).name == "mine"
-    text.write_text("\n".join(lines).replace("crf = 28", 'crf = "high"'))
-    with pytest.raises(PresetError, match=r"mine.toml: setting 'crf' must be an integer"):
-        load_preset(str(text))
-    text.write_text("\n".join(lines).replace("width_px = 640", "width_px = 641"))
-    with pytest.raises(PresetError, match="'width_px' must be even"):
-        load_preset(str(text))
-    text.write_text("\n".join(lines) + "\nbogus = 1")
-    with pytest.raises(PresetError, match="unknown setting"):
-        load_preset(str(text))
-    text.write_text("width_px = [")
-    with pytest.raises(PresetError, match="not valid TOML"):
-        load_preset(str(text))
+def write(path, text):
+    path.write_text(text)
+    return str(path)
+
+
+def test_a_preset_extends_a_shipped_one_and_sets_only_what_differs(tmp_path):
+    mine = load_preset(write(tmp_path / "mine.toml", 'base = "slideshow"\ncrf = 30\n'))
+    slideshow = load_preset("slideshow")
+    assert mine.name == "mine" and mine.crf == 30
+    assert mine.description == "slideshow with changes"
+    assert (mine.width_px, mine.fps, mine.codec) == (slideshow.width_px, slideshow.fps,
+                                                      slideshow.codec)
+    # A chain of files, each relative to the one that names it.
+    (tmp_path / "team").mkdir()
+    write(tmp_path / "team" / "base.toml", 'base = "../mine.toml"\nfps = 24\n'
+                                           'description = "our look"\n')
+    top = load_preset(write(tmp_path / "top.toml", 'base = "team/base.toml"\nzoom = 1.5\n'))
+    assert (top.crf, top.fps, top.zoom) == (30, 24.0, 1.5)
+    assert load_preset(str(tmp_path / "team" / "base.toml")).description == "our look"
+    assert top.description == "team/base.toml with changes"  # a base's words are its own
+    write(tmp_path / "loop.toml", 'base = "loop2.toml"\n')
+    write(tmp_path / "loop2.toml", 'base = "loop.toml"\n')
+    with pytest.raises(PresetError, match="loops back"):
+        load_preset(str(tmp_path / "loop.toml"))
+    with pytest.raises(PresetError, match="unknown preset 'slidesho'"):
+        load_preset(write(tmp_path / "typo.toml", 'base = "slidesho"\n'))
+
+
+def test_without_a_base_every_setting_but_the_description_is_required(tmp_path):
+    lines = [f"{k} = {v!r}".replace("'", '"') for k, v in vars(load_preset("preview")).items()
+             if k not in ("name", "description")]
+    assert load_preset(write(tmp_path / "full.toml", "\n".join(lines))).description == ""
+    with pytest.raises(PresetError, match=r"part.toml: 'codec' is a required property"):
+        load_preset(write(tmp_path / "part.toml", "\n".join(lines[:-4] + lines[-3:])))
+
+
+@pytest.mark.parametrize("line, message", [
+    ('crf = "high"', r"setting 'crf': 'high' is not of type 'integer'"),
+    ("width_px = 641", r"setting 'width_px': 641 is not a multiple of 2"),
+    ("fps = nan", r"setting 'fps' must be a finite number"),
+    ("fps = 0", r"setting 'fps': 0 is less than the minimum of 1"),
+    ('easing = "bounce"', r"setting 'easing': 'bounce' is not one of \['linear', 'ease-in-out'"),
+    ("bogus = 1", r"unknown setting\(s\) bogus; known: base, name, description"),
+    ("width_px = [", r"not valid TOML"),
+    ('codec = "libx999"', r"setting 'codec': ffmpeg .* has no video encoder 'libx999'"),
+    ('pix_fmt = "yuv999p"', r"setting 'pix_fmt': libx264 cannot write 'yuv999p'; it offers .*"
+                            r"yuv420p"),
+    ('encoder_preset = "fastest"', r"setting 'encoder_preset': ffmpeg refuses libx264 with "
+                                   r"encoder_preset 'fastest'"),
+])
+def test_errors_name_the_file_and_the_setting(tmp_path, line, message):
+    path = write(tmp_path / "mine.toml", f'base = "preview"\n{line}\n')
+    with pytest.raises(PresetError, match=r"mine.toml: " + message):
+        load_preset(path)
+
+
+def test_reference_preset_is_the_papers_automatic_clip():
+    reference = load_preset("reference")  # section 3.4: 75 linear steps at 25 fps
+    assert (reference.frames_forward, reference.fps, reference.easing) == (75, 25, "linear")
+    assert (reference.zoom, reference.max_shift_px) == (1.25, 100)
+
+
+def test_presets_command_lists_every_preset_and_setting():
+    output = CliRunner().invoke(main, ["presets"]).output
+    for name in builtin_names():
+        assert f"\n{name}: " in f"\n{output}"
+    for setting in schema()["properties"]:
+        assert f"  {setting} " in output
+
+
+def test_schema_easings_are_the_cameras():
+    from kbbatch.camera import EASINGS
+
+    assert schema()["properties"]["easing"]["enum"] == list(EASINGS)
 
 
 def test_unknown_preset_and_override_validation():
     with pytest.raises(PresetError, match="unknown preset 'nope'"):
         load_preset("nope")
-    with pytest.raises(PresetError, match="'easing' must be one of"):
+    with pytest.raises(PresetError, match="setting 'easing': 'bounce' is not one of"):
         with_overrides(load_preset("preview"), easing="bounce")
     assert with_overrides(load_preset("preview"), duration_s=1.0).frames_forward == 25
+
+
+@pytest.mark.parametrize("arguments, option", [
+    (["--fps", "nan"], "--fps"), (["--fps", "0"], "--fps"), (["--duration", "-1"], "--duration"),
+    (["--preset", "nope"], "--preset"),
+])
+def test_cli_blames_the_option_that_is_wrong(tmp_path, arguments, option):
+    result = CliRunner().invoke(main, ["render", str(tmp_path), *arguments])
+    assert result.exit_code == 2
+    assert f"Invalid value for {option}:" in result.output
+    assert "Traceback" not in result.output

@@ -103,13 +103,22 @@ def test_background_fill_uses_the_far_side_of_a_hole():
     assert not (red & hole).any(), "foreground colour bled into a disocclusion"
 
 
-def test_rendering_is_deterministic():
+def test_frames_rendered_concurrently_equal_the_serial_frame():
+    """The batch renders frames in threads (the kernels release the GIL): no shared buffer may
+    let one frame's splats leak into another's."""
+    from concurrent.futures import ThreadPoolExecutor
+
     image, depth = card_scene()
     cloud = back_project(image, depth, working_view(SCENE, (0.0, 0.0, 0.0)))
-    first = render(cloud, shifted_view(7.3, 1.1), DISPARITY_SCALE)
-    second = render(cloud, shifted_view(7.3, 1.1), DISPARITY_SCALE)
-    np.testing.assert_array_equal(first.colour, second.colour)
-    np.testing.assert_array_equal(first.weight, second.weight)
+    shifts = [(7.3, 1.1), (-4.0, 0.9), (2.5, 1.3), (0.0, 1.0)] * 3
+    serial = [render(cloud, shifted_view(*s), DISPARITY_SCALE) for s in shifts]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        threaded = list(pool.map(lambda s: render(cloud, shifted_view(*s), DISPARITY_SCALE),
+                                 shifts))
+    for alone, together in zip(serial, threaded, strict=True):
+        np.testing.assert_array_equal(alone.colour, together.colour)
+        np.testing.assert_array_equal(alone.weight, together.weight)
+    assert not np.array_equal(serial[0].colour, serial[1].colour)  # the views differ
 
 
 def reference_rendering(cloud, view, disparity_scale):

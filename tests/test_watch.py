@@ -40,11 +40,12 @@ encoder_preset = "ultrafast"
     return path
 
 
-def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str) -> subprocess.Popen:
+def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str,
+                 log_path: Path | None = None) -> subprocess.Popen:
     command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
                "--preset", str(preset), "--settle", "1", "--depth", "ramp", "--planner",
                "center", *extra]
-    log = open(outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
+    log = open(log_path or outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
 
 
@@ -92,7 +93,10 @@ def test_daemon_makes_a_clip_per_good_photo_and_a_report_per_bad_one(tmp_path):
         for path in (tmp_path / "corpus").iterdir():
             os.rename(path, inbox / path.name)  # arrives by rename, as a finished file
         total = len(photos) + len(GOOD) + len(BAD)
-        wait_for(lambda: finished_jobs(outbox) == total, 240, f"{total} finished jobs")
+        # Bad photos written moments ago are filed once they stayed unchanged a while.
+        wait_for(lambda: finished_jobs(outbox) == total
+                 and len(list((inbox / "failed").glob("*.error.json"))) == len(BAD), 240,
+                 f"{total} finished jobs and {len(BAD)} failure reports")
         # Nothing else arrives: the daemon keeps running until told to stop.
         assert daemon.poll() is None
     finally:
@@ -108,6 +112,7 @@ def test_daemon_makes_a_clip_per_good_photo_and_a_report_per_bad_one(tmp_path):
         [p.name for p in photos] + list(GOOD))
     assert not [p for p in inbox.iterdir() if p.is_file()], "every photo left the inbox"
     assert not list(outbox.glob(".*part*"))
+    assert "ERROR" not in (tmp_path / "daemon.log").read_text(), "nothing went wrong"
     status = subprocess.run([sys.executable, "-m", "kbbatch", "status", str(outbox)],
                             capture_output=True, text=True, check=True)
     assert f"done {total - len(BAD)}, failed {len(BAD)}" in status.stdout
@@ -138,7 +143,7 @@ def test_kill_9_mid_encode_then_restart_gives_exactly_one_clip(tmp_path):
     assert (inbox / "done" / photo.name).is_file() and not (inbox / photo.name).exists()
     journal = Journal(outbox)
     try:
-        job = journal.get(photo.name)
+        job = journal.get(inbox / "done" / photo.name)
         assert job.state == "done" and job.attempts == 2
     finally:
         journal.close()
@@ -166,7 +171,7 @@ def test_sigterm_exits_zero_and_slow_writes_wait_until_complete(tmp_path):
                 journal_path = outbox / ".kbbatch-journal.sqlite"
                 if journal_path.exists():
                     journal = Journal(outbox)
-                    assert journal.get("slow.jpg") is None, "picked up before it was complete"
+                    assert journal.get(target) is None, "picked up before it was complete"
                     journal.close()
         wait_for(lambda: finished_jobs(outbox) == 1, 120, "the slowly written photo")
         assert (outbox / "slow.mp4").is_file()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -41,18 +42,22 @@ class DepthOptions:
 
 
 class SceneContext:
-    """Per-photo segmentation, computed at most once and only if some step asks for it."""
+    """Per-photo segmentation, computed at most once and only if some step asks for it.
+
+    The results are stored on the instance, so they are freed with it: a module-level cache
+    would keep every photo's image and masks alive for the life of a daemon.
+    """
 
     def __init__(self, image: np.ndarray) -> None:
         self.image = image
 
-    @functools.cache  # noqa: B019 - one context per photo, dropped with it
+    @functools.cached_property
     def instances(self) -> list:
         from kbbatch.segment import find_instances
 
         return find_instances(self.image)
 
-    @functools.cache  # noqa: B019
+    @functools.cached_property
     def saliency(self) -> np.ndarray | None:
         from kbbatch.segment import salient_mask
 
@@ -66,41 +71,68 @@ class DepthBackend(Protocol):
                   ) -> DepthResult: ...
 
 
-BACKEND_NAMES = ("auto", "file", "onnx", "popup", "ramp")
+def _file_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
+    from kbbatch.depth.file import FileDepth, find_depth_file
+
+    depth_file = find_depth_file(photo_path) if photo_path else None
+    if depth_file is None:
+        raise DepthError(f"{photo_path}: --depth file needs <stem>.depth.png/.npy or "
+                         "<stem>.disparity.png/.npy beside the photo")
+    return FileDepth(depth_file)
+
+
+def _onnx_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
+    from kbbatch.depth.onnx import OnnxDepth, first_cached_model
+
+    model = options.model or first_cached_model()
+    if model is None:
+        raise DepthError("no depth network is cached: run `kbbatch models pull "
+                         "depth-anything-v2-small`, or use --depth popup (no network)")
+    return OnnxDepth(model)
+
+
+def _popup_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
+    from kbbatch.depth.popup import PopupDepth
+
+    return PopupDepth()
+
+
+def _ramp_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
+    from kbbatch.depth.ramp import RampDepth
+
+    return RampDepth()
+
+
+def _auto_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
+    """A depth file beside the photo, else a cached network, else the pop-up geometry."""
+    from kbbatch.depth.file import find_depth_file
+    from kbbatch.depth.onnx import first_cached_model
+
+    if photo_path and find_depth_file(photo_path):
+        return _file_backend(options, photo_path)
+    if options.model or first_cached_model():
+        return _onnx_backend(options, photo_path)
+    return _popup_backend(options, photo_path)
+
+
+BACKENDS: dict[str, Callable[[DepthOptions, Path | None], DepthBackend]] = {
+    "auto": _auto_backend, "file": _file_backend, "onnx": _onnx_backend,
+    "popup": _popup_backend, "ramp": _ramp_backend,
+}
+"""The registry: --depth's choices come from it; each entry builds the backend for a photo."""
+BACKEND_NAMES = tuple(BACKENDS)
 
 
 def get_backend(options: DepthOptions, photo_path: Path | None) -> DepthBackend:
     """The backend for a photo: by name, or for `auto` the best one available."""
-    from kbbatch.depth.file import FileDepth, find_depth_file
-    from kbbatch.depth.onnx import OnnxDepth, first_cached_model
-    from kbbatch.depth.popup import PopupDepth
-    from kbbatch.depth.ramp import RampDepth
+    if options.file and options.backend in ("auto", "file"):
+        from kbbatch.depth.file import FileDepth
 
-    name = options.backend
-    if options.file and name in ("auto", "file"):
-        return FileDepth(Path(options.file))
-    depth_file = find_depth_file(photo_path) if photo_path else None
-    if name == "auto":
-        if depth_file:
-            return FileDepth(depth_file)
-        model = options.model or first_cached_model()
-        return OnnxDepth(model) if model else PopupDepth()
-    if name == "file":
-        if depth_file is None:
-            raise DepthError(f"{photo_path}: --depth file needs <stem>.depth.png/.npy or "
-                             "<stem>.disparity.png/.npy beside the photo")
-        return FileDepth(depth_file)
-    if name == "onnx":
-        model = options.model or first_cached_model()
-        if model is None:
-            raise DepthError("no depth network is cached: run `kbbatch models pull "
-                             "depth-anything-v2-small`, or use --depth popup (no network)")
-        return OnnxDepth(model)
-    if name == "popup":
-        return PopupDepth()
-    if name == "ramp":
-        return RampDepth()
-    raise DepthError(f"unknown depth backend {name!r}; available: {', '.join(BACKEND_NAMES)}")
+        return FileDepth(Path(options.file))  # named by the manifest
+    if options.backend not in BACKENDS:
+        raise DepthError(f"unknown depth backend {options.backend!r}; available: "
+                         f"{', '.join(BACKEND_NAMES)}")
+    return BACKENDS[options.backend](options, photo_path)
 
 
 def estimate_disparity(image: np.ndarray, photo_path: Path | None,
@@ -120,7 +152,7 @@ def estimate_disparity(image: np.ndarray, photo_path: Path | None,
             disparity = cv2.resize(disparity, (width, height), interpolation=cv2.INTER_LINEAR)
     # Pop-up cards are already flat and the ramp is a prior with nothing to adjust.
     if options.adjust and result.backend not in ("popup", "ramp"):
-        instances = context.instances()
+        instances = context.instances
         if instances:
             disparity = adjust(disparity, instances)
     log.info("depth from %s (%s)", result.backend, result.source)

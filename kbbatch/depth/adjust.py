@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.segment import Instance
+from kbbatch.segment import Instance, group_cards
 
 
 def ground_contact_disparity(disparity: np.ndarray, box: tuple[int, int, int, int]) -> float:
@@ -16,9 +16,13 @@ def ground_contact_disparity(disparity: np.ndarray, box: tuple[int, int, int, in
 
 
 def adjust(disparity: np.ndarray, instances: list[Instance]) -> np.ndarray:
-    """Give every instance mask one disparity, its ground contact's; nearer objects win."""
+    """Give every instance mask one disparity, its ground contact's; nearer objects win.
+
+    Instances that touch at a similar disparity (people standing together) share one card.
+    """
     adjusted = disparity.copy()
     values = [ground_contact_disparity(disparity, i.box) for i in instances]
-    for value, instance in sorted(zip(values, instances, strict=True), key=lambda p: p[0]):
-        adjusted[instance.mask] = value
+    cards = group_cards([i.mask for i in instances], values)
+    for mask, value in sorted(cards, key=lambda card: card[1]):
+        adjusted[mask] = value
     return adjusted

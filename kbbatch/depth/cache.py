@@ -18,7 +18,7 @@ from kbbatch.depth import DepthOptions, DepthResult
 from kbbatch.images import atomic_output
 
 CACHE_ENV = "KBBATCH_CACHE"
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 """Bump when a change to the depth code changes its output."""
 
 

@@ -13,10 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from kbbatch.camera import ASPECT_TOLERANCE
 from kbbatch.depth import DepthError, DepthResult
-
-ASPECT_TOLERANCE = 0.02
-"""A map whose aspect differs from the photo's by more than this is refused, not stretched."""
 
 DEPTH_FILE_KINDS = ("depth", "disparity")
 DEPTH_FILE_SUFFIXES = (".png", ".npy", ".exr")

@@ -12,6 +12,7 @@ import numpy as np
 
 from kbbatch.depth import DepthResult, SceneContext
 from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
+from kbbatch.segment import SALIENT_THRESHOLD, clean_mask, group_cards
 
 HORIZON_RANGE = (0.15, 0.8)
 """The estimated horizon is kept within these fractions of the height, from the top."""
@@ -62,16 +63,18 @@ def estimate_horizon(image: np.ndarray, contacts: list[float]) -> float:
 
 def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     """(mask, grounded) of every object to pop up: instances, else salient-mask components."""
-    instances = context.instances()
+    instances = context.instances
     if instances:
         return [(i.mask, i.class_name not in GROUNDED_EXCEPTIONS) for i in instances]
-    saliency = context.saliency()
+    saliency = context.saliency
     if saliency is None:
         return []
-    binary = (saliency > 0.5).astype(np.uint8)
+    binary = (saliency > SALIENT_THRESHOLD).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
-    return [(labels == k, True) for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
+    cards = [clean_mask(labels == k) for k in range(1, count)
+             if stats[k, cv2.CC_STAT_AREA] >= minimum]
+    return [(card, True) for card in cards if card.sum() >= minimum]
 
 
 def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> np.ndarray:
@@ -83,9 +86,11 @@ def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> 
     horizon = estimate_horizon(image, contacts)
     ground = ground_plane_disparity(height, width, horizon)
     disparity = ground.copy()
-    # Far cards first, so that nearer ones cover them where they overlap.
-    for bottom, (mask, _) in sorted(zip(bottoms, cards, strict=True), key=lambda c: c[0]):
-        disparity[mask] = ground[bottom, 0]
+    # Cards touching at a similar depth become one group; far cards first, so that nearer
+    # ones cover them where they overlap.
+    groups = group_cards([mask for mask, _ in cards], [float(ground[b, 0]) for b in bottoms])
+    for mask, value in sorted(groups, key=lambda card: card[1]):
+        disparity[mask] = value
     return disparity
 
 

@@ -39,9 +39,9 @@ from kbbatch.manifest import (
     plan_to_entry,
     write_manifest,
 )
+from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
 from kbbatch.review import depth_picture
-from planners import PlanRequest, get_planner
 
 STATIC_FOLDER = Path(__file__).parent / "static"
 TOKEN_HEADER = "X-KBBatch-Token"

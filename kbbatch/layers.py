@@ -1,0 +1,238 @@
+"""Soft layers at depth edges: an alpha matte and un-mixed colours for both sides.
+
+A pixel on the boundary of a foreground object mixes the object's colour with the
+background's. Given to one side only, that mix either travels with the object (a halo) or
+stays behind when the object moves away (a ghost). So every pixel within a band around a depth
+edge becomes two points: one on the near side, with the edge's alpha matte and the object's own
+colour, and one on the far side, opaque, with the background's colour estimated from clean
+background pixels only. The renderer composites the two with premultiplied alpha, so the
+start view reproduces the photo and every other view moves them apart cleanly (the soft
+layering of SLIDE, Jampani et al. 2021).
+
+Everything here works at the cloud's density (one point per output pixel or more), so edges
+follow the photo's own colour edges at the output size instead of the working-size depth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from kbbatch.render import depth_edges
+
+LAYER_BAND_PX = 6
+"""Pixels within this distance (working px) of a depth edge may belong to both layers: wide
+enough for the soft edge of a defocused object (a blur of about 2.5 px)."""
+
+MATTE_RADIUS_PX = 2.0
+"""Radius of the guided filter that shapes the matte along colour edges, in working px."""
+
+MATTE_EPSILON = 1e-2
+"""Guided-filter regulariser (colours in 0..1). Smaller follows colour edges more closely, but
+below about 1e-2 OpenCV's float32 filter degrades to a plain blur on smooth gradients."""
+
+MATTE_SLACK_PX = 1
+"""The guided filter may place the object's edge this far (working px) from its depth edge."""
+
+COLOUR_CONTRAST = 40.0
+"""Difference (8-bit levels) between object and background colour at which the matte read
+from the colours and the one from the guided filter are trusted equally."""
+
+EDGE_BLUR_MAX_PX = 2.5
+"""The widest blur (Gaussian sigma, working px) an object's edge is assumed to have: its alpha
+beyond the depth edge stays below that blur's tail."""
+
+CLEAN_ALPHA = 0.02
+"""Alpha below this is pure background, above 1 minus this pure foreground."""
+
+@dataclass(frozen=True)
+class SoftLayers:
+    """Per pixel of the photo at the cloud's density.
+
+    Outside the band a pixel is one opaque point at depth. Inside, it is a near point
+    (near_depth, foreground colour, alpha) where alpha > 0 and a far opaque point
+    (far_depth, background colour) where alpha < 1.
+    """
+
+    depth: np.ndarray  # (H, W) float32
+    band: np.ndarray  # (H, W) bool
+    has_background: np.ndarray  # (H, W) bool, where a clean background colour was found
+    alpha: np.ndarray  # (H, W) float32 0..1, the near layer's matte
+    near_depth: np.ndarray  # (H, W) float32
+    far_depth: np.ndarray  # (H, W) float32
+    foreground: np.ndarray  # (H, W, 3) uint8
+    background: np.ndarray  # (H, W, 3) uint8
+
+    @property
+    def near(self) -> np.ndarray:
+        return self.band & (self.alpha > CLEAN_ALPHA) & ~self.unsplit
+
+    @property
+    def unsplit(self) -> np.ndarray:
+        """Band pixels with no clean background near: kept whole, one opaque point on the
+        side their alpha leans to (as if there were no layers)."""
+        return self.band & (self.alpha < 1.0 - CLEAN_ALPHA) & ~self.has_background
+
+    @property
+    def far(self) -> np.ndarray:
+        return self.band & (self.alpha < 1.0 - CLEAN_ALPHA) & self.has_background
+
+
+def upsample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Depth at the cloud's size, interpolated linearly in disparity.
+
+    Nearest-neighbour enlargement turns a slanted surface (a ground plane) into steps of flat
+    strips, and a dolly opens a one-pixel crack between every two strips; interpolating in
+    disparity keeps it one smooth surface. Depth edges are handled by the band, not here.
+    """
+    disparity = cv2.resize(1.0 / depth, (width, height), interpolation=cv2.INTER_LINEAR)
+    return (1.0 / disparity).astype(np.float32)
+
+
+def blurred_edge_tail(distance_px: np.ndarray) -> np.ndarray:
+    """Alpha of a step edge blurred by EDGE_BLUR_MAX_PX at this distance beyond it (negative:
+    inside)."""
+    table_px = np.linspace(-8.0 * EDGE_BLUR_MAX_PX, 8.0 * EDGE_BLUR_MAX_PX, 513)
+    tail = [0.5 * math.erfc(d / (math.sqrt(2.0) * EDGE_BLUR_MAX_PX)) for d in table_px]
+    return np.interp(distance_px, table_px, tail).astype(np.float32)
+
+
+def _remainder(colour: np.ndarray, known: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """The other layer's colour, given one layer's colour and its share of the pixel."""
+    return (colour - share * known) / np.maximum(1 - share, 1 / 255)
+
+
+def _clipped(colour: np.ndarray) -> np.ndarray:
+    return np.any((colour < 0) | (colour > 255), axis=-1, keepdims=True)
+
+
+def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of image over the weighted pixels in a box, and the summed weight there."""
+    size = (2 * radius + 1, 2 * radius + 1)
+    total = cv2.blur(weight, size)
+    weighted = cv2.blur(image * weight[..., None], size)
+    return weighted / np.maximum(total, 1e-6)[..., None], total
+
+
+def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
+    """The photo (RGB uint8 at the cloud's density) and its depth (working size) as soft layers.
+
+    Near each depth edge, the clean colours of both sides are estimated from pixels well
+    inside each side (the background's beyond the band, so that none carries the object's
+    soft edge). The matte is each pixel's position on the line between those two colours,
+    where they differ, and a guided filter of the near side on the full-size photo (OpenCV
+    ximgproc) where they do not; so it follows the object's real, anti-aliased edge at the
+    output size. The object's colour is then solved from the compositing equation, so the
+    start view reproduces the photo, and the background's is the clean estimate, so no object
+    colour stays behind.
+    """
+    height, width = photo.shape[:2]
+    scale = width / depth.shape[1]
+    band_px = LAYER_BAND_PX
+    window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
+    nearest = cv2.erode(depth, window)
+    farthest = cv2.dilate(depth, window)
+    edges = depth_edges(depth).astype(np.uint8)
+    # Split only where the two sides really differ in depth within reach.
+    small_band = (cv2.dilate(edges, window) > 0) & (farthest > nearest * 1.001)
+    # Which side each pixel is on, judged over twice the band, so that clean pixels of both
+    # sides lie within reach of every band pixel.
+    reach = 2 * band_px + 2
+    wide = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1,) * 2)
+    near_depth_wide = cv2.erode(depth, wide)
+    far_depth_wide = cv2.dilate(depth, wide)
+    in_reach = cv2.dilate(edges, wide) > 0
+    closer = np.abs(1 / depth - 1 / near_depth_wide) <= np.abs(1 / depth - 1 / far_depth_wide)
+    near_side = closer & in_reach
+    far_side = ~closer & in_reach
+    to_far = cv2.distanceTransform((~far_side).astype(np.uint8), cv2.DIST_L2, 3)
+    to_near = cv2.distanceTransform((~near_side).astype(np.uint8), cv2.DIST_L2, 3)
+    # Clean background: beyond the band; clean object: its deepest pixels (a thin pole has few).
+    back_source = (far_side & (to_near > band_px)).astype(np.float32)
+    front_source = np.where(near_side, np.minimum(to_far, band_px) ** 2, 0).astype(np.float32)
+
+    size = (width, height)
+    band = cv2.resize(small_band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    colour = photo.astype(np.float32)
+    box = max(1, round(2 * band_px * scale))
+    back_mean, back_weight = _normalised_blur(
+        colour, cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR), box)
+    front_mean, front_weight = _normalised_blur(
+        colour, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR), box)
+    has_background = back_weight > 1e-3
+    has_foreground = front_weight > 1e-3
+
+    near_mask = cv2.resize(near_side.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    guided = cv2.ximgproc.guidedFilter(photo.astype(np.float32) / 255.0, near_mask,
+                                       max(1, round(MATTE_RADIUS_PX * scale)), MATTE_EPSILON)
+    slack = np.ones((2 * MATTE_SLACK_PX + 1,) * 2, np.uint8)
+    near_u8 = near_side.astype(np.uint8)
+    most = cv2.resize(cv2.dilate(near_u8, slack).astype(np.float32), size,
+                      interpolation=cv2.INTER_LINEAR)
+    least = cv2.resize(cv2.erode(near_u8, slack).astype(np.float32), size,
+                       interpolation=cv2.INTER_LINEAR)
+    guided = np.clip(guided, least, most)
+    # Beyond the depth edge an object's alpha can only fade like a blurred edge does, so a
+    # background that happens to share the object's colour is not taken for part of it.
+    # Pixel centres next to the near side lie half a pixel beyond its edge.
+    beyond = np.where(near_side, -float(band_px), to_near - 0.5).astype(np.float32)
+    outside_px = cv2.resize(beyond, size, interpolation=cv2.INTER_LINEAR)
+
+    # The rest concerns band pixels only.
+    pixel = colour[band]
+    back_here = back_mean[band]
+    front_here = np.where(has_foreground[band][:, None], front_mean[band], pixel)
+    contrast = front_here - back_here
+    spread = np.sum(contrast * contrast, axis=-1)
+    along = np.sum((pixel - back_here) * contrast, axis=-1) / np.maximum(spread, 1e-6)
+    trust = spread / (spread + COLOUR_CONTRAST**2)
+    trust = np.where(has_background[band] & has_foreground[band], trust, 0.0)
+    matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[band]
+    matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
+    matte = np.clip(matte, 0.0, 1.0)
+    matte[matte < CLEAN_ALPHA] = 0.0
+    matte[matte > 1.0 - CLEAN_ALPHA] = 1.0
+    # Alpha is quantised first, as the cloud stores it.
+    matte = (np.round(matte * 255) / 255).astype(np.float32)
+
+    # Colours are solved so that the start view reproduces the photo to the 8-bit level: the
+    # side with the larger share takes its clean estimate, the other the rest of the pixel.
+    a = matte[:, None]
+    mostly_front = a >= 0.5
+    first = np.round(np.clip(np.where(mostly_front, back_here, front_here), 0, 255))
+    share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
+    second = _remainder(pixel, first, share)
+    # Where the background (as the remainder) had to be clipped, the object takes up the
+    # difference; never the other way, which would hand the object's colour to the background.
+    first = np.where(_clipped(second) & ~mostly_front,
+                     _remainder(pixel, np.round(np.clip(second, 0, 255)), 1 - share), first)
+    first = np.round(np.clip(first, 0, 255))
+    second = np.round(np.clip(_remainder(pixel, first, share), 0, 255))
+    front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
+    back_band = np.where(a <= 0.0, pixel, np.where(mostly_front, first, second))
+
+    alpha = (near_mask > 0.5).astype(np.float32)
+    alpha[band] = matte
+    foreground = photo.copy()
+    foreground[band] = front_band.astype(np.uint8)
+    background = photo.copy()
+    background[band] = back_band.astype(np.uint8)
+    # Where no clean background lies near, there is no background colour to give: the pixel
+    # is kept whole (unsplit), and the extension fills what is behind it from background only.
+    has_background = has_background | (alpha <= 0.0)
+
+    smooth = upsample_depth(depth, width, height)
+    return SoftLayers(
+        depth=smooth,
+        band=band,
+        has_background=has_background,
+        alpha=alpha,
+        near_depth=cv2.resize(nearest, size, interpolation=cv2.INTER_NEAREST),
+        far_depth=cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST),
+        foreground=foreground,
+        background=background,
+    )

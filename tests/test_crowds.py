@@ -1,0 +1,142 @@
+"""Crowds and fragments: clean masks, group cards, faces kept whole (issue 10, item 3)."""
+
+import cv2
+import numpy as np
+import pytest
+
+from kbbatch.camera import working_size
+from kbbatch.depth.popup import popup_disparity
+from kbbatch.images import read_image
+from kbbatch.segment import FRAGMENT_MIN_PX, clean_mask, group_cards, own_pieces
+
+from .conftest import SHARED, textured_image
+
+
+def test_clean_mask_drops_fragments_and_slivers_and_fills_speckle_holes():
+    mask = np.zeros((200, 200), bool)
+    mask[40:160, 40:120] = True  # the body
+    mask[90:92, 120:190] = True  # a 2 px sliver sticking out
+    mask[10:20, 170:180] = True  # a loose 10 x 10 fragment
+    mask[100:103, 80:83] = False  # a speckle hole
+    cleaned = clean_mask(mask)
+    assert not cleaned[10:20, 170:180].any(), "a fragment below the threshold stayed"
+    assert not cleaned[90:92, 140:190].any(), "the sliver stayed"
+    assert cleaned[100:103, 80:83].all(), "the speckle hole stayed"
+    assert cleaned[50:150, 50:110].all()
+    count, _, stats, _ = cv2.connectedComponentsWithStats(cleaned.astype(np.uint8))
+    assert (stats[1:, cv2.CC_STAT_AREA] >= FRAGMENT_MIN_PX).all()
+
+
+def test_clean_mask_keeps_a_face_whole_even_where_it_is_thin():
+    mask = np.zeros((200, 200), bool)
+    mask[60:190, 50:150] = True
+    mask[30:60, 98:101] = True  # a thin part (3 px) of the face region: a profile, a nose
+    face = np.zeros_like(mask)
+    face[20:60, 50:150] = True
+    assert not clean_mask(mask)[30:55, 98:101].any()  # without protection it is opened away
+    assert clean_mask(mask, keep=face)[30:60, 98:101].all()
+
+
+def test_an_instance_keeps_its_own_pieces_not_its_neighbours():
+    mask = np.zeros((200, 300), bool)
+    mask[40:150, 80:160] = True  # the body, through the box's core
+    mask[160:200, 90:120] = True  # a leg below an occluder (a pole, a table)
+    mask[60:120, 175:200] = True  # a neighbour's arm reaching into the box
+    core = np.zeros_like(mask)
+    core[50:150, 100:150] = True
+    others = np.zeros_like(mask)
+    others[30:200, 170:300] = True  # the neighbour's box
+    kept = own_pieces(mask, core, others)
+    assert kept[40:150, 80:160].all() and kept[160:200, 90:120].all()
+    assert not kept[60:120, 175:200].any()
+
+
+def test_touching_cards_at_a_similar_depth_become_one_with_the_gap_between():
+    left = np.zeros((100, 200), bool)
+    left[20:100, 20:95] = True
+    right = np.zeros_like(left)
+    right[20:100, 105:180] = True  # 10 px of background between the two
+    far = np.zeros_like(left)
+    far[0:30, 170:200] = True  # touches the right card but is much farther
+    cards = group_cards([left, right, far], [30.0, 31.0, 10.0])
+    assert len(cards) == 2
+    group, value = max(cards, key=lambda card: card[1])
+    assert value == 31.0, "a group takes its nearest member's disparity"
+    assert group[50:100, 95:105].all(), "the gap between the two people stays a floating shard"
+    assert not group[0:20, 100].any(), "background above the shoulders joined the group"
+    distant = np.zeros_like(left)
+    distant[20:100, 150:200] = True  # 55 px away
+    apart = group_cards([left, distant], [30.0, 31.0])
+    assert len(apart) == 2, "cards far apart were grouped"
+
+
+def test_popup_people_side_by_side_share_one_card():
+    image = textured_image(240, 360, seed=5)
+    left = np.zeros((240, 360), bool)
+    left[80:240, 60:170] = True
+    right = np.zeros_like(left)
+    right[90:240, 182:300] = True
+    disparity = popup_disparity(image, [(left, True), (right, True)])
+    assert np.ptp(disparity[100:240, 60:300]) == 0, "the sliver between them is not on the card"
+
+
+def real_models_or_skip(monkeypatch) -> None:
+    models_dir = SHARED / "models"
+    needed = ("yolox_nano_coco_416.onnx", "isnet_dis_medium.onnx",
+              "deeplabv3_mnv2_pascal_257.onnx")
+    missing = [name for name in needed if not (models_dir / name).is_file()]
+    if missing:
+        pytest.skip(f"real models {missing} not found in {models_dir} (developer/CI only)")
+    monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
+
+
+def at_working_size(photo: np.ndarray) -> np.ndarray:
+    width, height = working_size(photo.shape[1], photo.shape[0])
+    return cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def test_real_two_people_get_one_card_without_a_shard_between_them(monkeypatch):
+    from kbbatch.depth import estimate_disparity
+
+    real_models_or_skip(monkeypatch)
+    photo = at_working_size(read_image(SHARED / "photos" /
+                                       "03_portrait_two_people_obama_biden.jpg"))
+    disparity = estimate_disparity(photo, None).disparity
+    height, width = disparity.shape
+    card = disparity[int(0.7 * height), int(0.3 * width)]
+    row = disparity[int(0.7 * height), int(0.3 * width):int(0.7 * width)]
+    assert (row == card).all(), "a strip of background floats between the two people"
+
+
+def crowd_photo() -> np.ndarray:
+    """A test crowd: the shared portraits tiled 3 x 2 (people cut by tile edges included)."""
+    names = ("02_portrait_obama_official.jpg", "03_portrait_two_people_obama_biden.jpg",
+             "01_portrait_astronaut_eileen_collins.png")
+    tiles = [cv2.resize(read_image(SHARED / "photos" / name), (340, 288),
+                        interpolation=cv2.INTER_AREA) for name in names]
+    rows = [np.concatenate([tiles[(r + c) % 3] for c in range(3)], axis=1) for r in range(2)]
+    return np.concatenate(rows, axis=0)
+
+
+def test_real_crowd_has_no_fragments_and_no_face_taken_by_another_card(monkeypatch):
+    from kbbatch.segment import find_instances
+
+    real_models_or_skip(monkeypatch)
+    if not (SHARED / "photos" / "01_portrait_astronaut_eileen_collins.png").is_file():
+        pytest.skip("shared portraits not found (developer/CI only)")
+    photo = crowd_photo()
+    instances = find_instances(photo)
+    people = [i for i in instances if i.class_name == "person"]
+    assert len(people) >= 8, f"found only {len(people)} people in the test crowd"
+    for instance in instances:
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(
+            instance.mask.astype(np.uint8))
+        for piece in range(1, count):
+            holds_face = instance.face is not None and instance.face[labels == piece].any()
+            assert stats[piece, cv2.CC_STAT_AREA] >= FRAGMENT_MIN_PX or holds_face, "fragment"
+    for person in people:
+        assert person.face is not None and person.face.any()
+        assert (person.mask & person.face).sum() == person.face.sum(), "a face was cut"
+        for other in instances:
+            if other is not person:
+                assert not (other.mask & person.face).any(), "a face taken by another card"

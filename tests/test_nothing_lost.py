@@ -1,0 +1,352 @@
+"""The one-shot batch against a hostile user (issue 14): same names from two camera cards,
+full disks, kills, tight crops, unreadable files, empty folders, logs. Nothing is lost, nothing
+is overwritten, and every case says what happened."""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from kbbatch import batch
+from kbbatch.batch import ClipOptions, default_jobs, plan_folder, run_folder
+from kbbatch.depth import DepthOptions
+from kbbatch.images import ImageReadError, read_image
+from kbbatch.journal import FolderBusyError, FolderLock, Journal
+
+from .conftest import textured_image
+from .test_watch import wait_for
+
+FAST = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=2)
+CLI = [sys.executable, "-m", "kbbatch"]
+FAST_CLI = ["--depth", "ramp", "--planner", "center", "--preset", "preview", "--duration",
+            "0.6", "--fps", "10"]
+
+
+def visible_clips(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.glob("*.mp4") if not p.name.startswith("."))
+
+
+def photo(path: Path, seed: int, height: int = 180, width: int = 320) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(textured_image(height, width, seed=seed)).save(path)
+    return path
+
+
+@pytest.fixture
+def tiny_mount(tmp_path):
+    """A 3 MB tmpfs (root only; skipped with the reason where mounting is not allowed)."""
+    mount = tmp_path / "small-disk"
+    mount.mkdir()
+    result = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)],
+                            capture_output=True, text=True)
+    if result.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {result.stderr.strip()}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def fill(disk: Path, leave_bytes: int) -> Path:
+    """Fill a disk until at most leave_bytes are free."""
+    filler = disk / "filler"
+    with filler.open("wb") as handle:
+        try:
+            while shutil.disk_usage(disk).free > leave_bytes:
+                handle.write(b"\0" * min(65536, shutil.disk_usage(disk).free - leave_bytes
+                                         or 4096))
+                handle.flush()
+        except OSError:
+            pass
+    return filler
+
+
+# --- 1: same names --------------------------------------------------------------------------
+def test_a_second_card_with_the_same_names_never_replaces_a_clip(tmp_path, quick_preset):
+    photo(tmp_path / "card1" / "IMG_0001.jpg", seed=1)
+    photo(tmp_path / "card2" / "IMG_0001.jpg", seed=2)
+    out = tmp_path / "clips"
+    out.mkdir()
+    (out / "IMG_0002.mp4").write_bytes(b"someone's own file")
+    photo(tmp_path / "card2" / "IMG_0002.jpg", seed=3)
+    first = run_folder(tmp_path / "card1", out, quick_preset, FAST, False)
+    assert [r.status for r in first.results] == ["done"]
+    first_clip = (out / "IMG_0001.mp4").read_bytes()
+    second = run_folder(tmp_path / "card2", out, quick_preset, FAST, False)
+    assert [r.status for r in second.results] == ["done", "done"], second.to_json()
+    assert (out / "IMG_0001.mp4").read_bytes() == first_clip, "card 1's clip was replaced"
+    assert (out / "IMG_0002.mp4").read_bytes() == b"someone's own file"
+    clips = visible_clips(out)
+    assert len(clips) == 4, clips
+    renamed = [Path(r.output).name for r in second.results]
+    assert all(name.startswith(("IMG_0001.", "IMG_0002.")) and len(name.split(".")) == 3
+               for name in renamed), renamed
+    assert all(r.note and "named by its content" in r.note for r in second.results)
+    report = json.loads((out / "kbbatch-report.json").read_text())
+    assert all("named by its content" in c["note"] for c in report["clips"])
+    # Re-runs of either card: up to date, nothing re-rendered or renamed.
+    for card in ("card1", "card2"):
+        again = run_folder(tmp_path / card, out, quick_preset, FAST, False)
+        assert {r.status for r in again.results} == {"skipped"}
+    assert visible_clips(out) == clips
+
+
+def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):
+    path = photo(tmp_path / "in" / "a.jpg", seed=1)
+    run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    photo(path, seed=7)
+    report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["done"]
+    assert visible_clips(tmp_path / "out") == ["a.mp4"]
+
+
+# --- 2: full disk ---------------------------------------------------------------------------
+@pytest.mark.slow
+def test_a_full_disk_fails_photos_cleanly_and_a_rerun_finishes(tmp_path, tiny_mount):
+    folder = tmp_path / "in"
+    for index in range(3):
+        photo(folder / f"p{index}.jpg", seed=index)
+    for leave_kb in (0, 8, 40, 120, 300):
+        out = tiny_mount / f"out-{leave_kb}"
+        filler = fill(tiny_mount, leave_kb * 1024)
+        run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
+                             capture_output=True, text=True, timeout=300)
+        assert "Traceback" not in run.stderr, f"{leave_kb} KB free:\n{run.stderr}"
+        assert run.returncode in (0, 1) and (leave_kb > 0 or run.returncode == 1), (
+            f"{leave_kb} KB free: {run.stdout}{run.stderr}")
+        if run.returncode == 1:  # what failed says why
+            assert "full" in run.stderr or "No space" in run.stderr, run.stderr
+        filler.unlink()
+        rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
+                               capture_output=True, text=True, timeout=300)
+        assert rerun.returncode == 0, rerun.stderr
+        assert visible_clips(out) == ["p0.mp4", "p1.mp4", "p2.mp4"]
+        assert not list(out.glob(".*part*"))
+        journal = Journal(out)
+        try:
+            assert journal.counts()["done"] == 3 and not journal.jobs("running")
+        finally:
+            journal.close()
+        shutil.rmtree(out)
+
+
+# --- 4: kills -------------------------------------------------------------------------------
+def start_batch(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
+    command = [*CLI, str(folder), "-o", str(out), "--depth", "ramp", "--planner", "center",
+               "--preset", "preview", "--quiet", *extra]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def slow_folder(tmp_path: Path) -> Path:
+    folder = tmp_path / "in"
+    for index in range(2):
+        photo(folder / f"p{index}.jpg", seed=index, height=360, width=640)
+    return folder
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    process = start_batch(folder, out, "--duration", "20", "--fps", "25")
+    try:
+        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.wait(timeout=60)
+    assert list(out.glob(".*.part*")), "the kill left a partial clip (the case under test)"
+    rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
+                           capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert not list(out.glob(".*part*")), "partial clips of the killed run are still there"
+    assert visible_clips(out) == ["p0.mp4", "p1.mp4"]
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert "RUNNING" not in status.stdout and "done 2" in status.stdout
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
+def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    process = start_batch(folder, out, "--duration", "6", "--fps", "25")
+    try:
+        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
+        process.send_signal(stop_signal)
+        _, stderr = process.communicate(timeout=300)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr and "run again" in stderr, stderr
+    assert not list(out.glob(".*part*")), "a partial clip was left"
+    clips = visible_clips(out)
+    if stop_signal == signal.SIGTERM:  # the clip in progress is finished, the next not begun
+        assert clips == ["p0.mp4"]
+        report = json.loads((out / "kbbatch-report.json").read_text())
+        assert report["stopped_by"] == "SIGTERM"
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert "RUNNING" not in status.stdout, status.stdout
+
+
+def test_a_second_batch_into_the_same_folder_is_refused(tmp_path, quick_preset):
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    (tmp_path / "out").mkdir()
+    lock = FolderLock(tmp_path / "out", "writing clips into")
+    try:
+        with pytest.raises(FolderBusyError, match="another kbbatch"):
+            run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    finally:
+        lock.release()
+    assert not visible_clips(tmp_path / "out")
+
+
+# --- 6: crop size ---------------------------------------------------------------------------
+@pytest.mark.parametrize("end", [{"center_x": 320, "center_y": 180, "width": 20},
+                                 {"center_x": 0.5, "center_y": 0.5, "width": 0.0001}])
+def test_a_tiny_manifest_crop_is_refused_with_the_width_that_fits(tmp_path, end):
+    """Run under a 4 GB address-space limit: an unbounded cloud fails otherwise, not here."""
+    folder = tmp_path / "in"
+    photo(folder / "a.jpg", seed=1, height=360, width=640)
+    units = "fraction" if end["width"] < 1 else "px"
+    start = ({"center_x": 0.5, "center_y": 0.5, "width": 0.9} if units == "fraction"
+             else {"center_x": 320, "center_y": 180, "width": 600})
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"a.jpg": {
+        "units": units, "start": start, "end": end}}}))
+
+    def limit_memory() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+
+    run = subprocess.run([*CLI, str(folder), "-o", str(tmp_path / "out"), "--manifest",
+                          str(manifest), "--quiet", "--depth", "ramp", "--preset", "slideshow",
+                          "--duration", "0.5"], capture_output=True, text=True, timeout=300,
+                         preexec_fn=limit_memory)
+    assert run.returncode == 1, run.stderr
+    assert "a.jpg" in run.stderr and "too tight" in run.stderr and "at least" in run.stderr, (
+        run.stderr)
+    assert "Traceback" not in run.stderr
+
+
+# --- 8: permissions -------------------------------------------------------------------------
+def test_a_photo_without_read_permission_is_not_called_corrupt(tmp_path):
+    path = photo(tmp_path / "secret.jpg", seed=1)
+    path.chmod(0o000)
+    if os.geteuid() != 0:
+        with pytest.raises(ImageReadError) as caught:
+            read_image(path)
+        message = str(caught.value)
+    else:  # root reads everything: ask as root without the capabilities that bypass modes
+        if shutil.which("setpriv") is None:
+            pytest.skip("running as root and util-linux setpriv is missing")
+        script = ("from kbbatch.images import read_image\n"
+                  f"try:\n    read_image({str(path)!r})\n"
+                  "except Exception as e:\n    print(e)\n")
+        run = subprocess.run(["setpriv", "--inh-caps=-all", "--ambient-caps=-all",
+                              "--bounding-set=-dac_override,-dac_read_search", sys.executable,
+                              "-c", script], capture_output=True, text=True)
+        message = run.stdout + run.stderr
+    assert "secret.jpg" in message and "permission denied" in message, message
+    assert "corrupt" not in message
+
+
+# --- 9: plan previews -----------------------------------------------------------------------
+def test_plan_previews_of_same_stem_photos_do_not_collide(tmp_path, quick_preset):
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    photo(tmp_path / "in" / "a.png", seed=2)
+    photo(tmp_path / "in" / "b.jpg", seed=3)
+    results = plan_folder(tmp_path / "in", tmp_path / "plans" / "manifest.json", quick_preset,
+                          FAST, False)
+    assert [r.status for r in results] == ["done"] * 3
+    previews = sorted(p.name for p in (tmp_path / "plans" / "manifest-previews").iterdir())
+    assert previews == ["a.jpg.jpg", "a.png.jpg", "b.jpg"]
+
+
+# --- 10: truncated clips, links, subfolders, empty folders, logs -----------------------------
+def test_a_truncated_clip_is_not_up_to_date(tmp_path, quick_preset):
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    clip = tmp_path / "out" / "a.mp4"
+    whole = clip.read_bytes()
+    clip.write_bytes(whole[: len(whole) // 3])
+    report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["done"]
+    assert clip.stat().st_size == len(whole)
+
+
+def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
+    folder = tmp_path / "in"
+    photo(folder / "a.jpg", seed=1)
+    (folder / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
+    photo(folder / "more" / "b.jpg", seed=2)
+    report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    by_name = {Path(r.source).name: r for r in report.results}
+    assert by_name["a.jpg"].status == "done"
+    assert by_name["gone.jpg"].status == "failed"
+    assert "broken symbolic link" in by_name["gone.jpg"].error
+    assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
+
+
+def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):
+    (tmp_path / "empty").mkdir()
+    run = subprocess.run([*CLI, str(tmp_path / "empty"), "-o", str(tmp_path / "out")],
+                         capture_output=True, text=True)
+    assert run.returncode == 3, run.stderr
+    assert "no photos" in run.stderr and "empty" in run.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_progress_into_a_log_has_no_zero_lines_or_escape_codes(tmp_path):
+    for index in range(2):
+        photo(tmp_path / "in" / f"p{index}.jpg", seed=index)
+    log = tmp_path / "log.txt"
+    with log.open("w") as handle:
+        run = subprocess.run([*CLI, str(tmp_path / "in"), "-o", str(tmp_path / "out"),
+                              *FAST_CLI], stdout=handle, stderr=subprocess.STDOUT)
+    text = log.read_text()
+    assert run.returncode == 0, text
+    assert "\r" not in text and "\x1b" not in text and " 0%" not in text, repr(text)
+    assert "photos 2/2" in text
+
+
+# --- 11: --jobs default ---------------------------------------------------------------------
+@pytest.mark.parametrize(("cores", "memory_gib", "jobs"),
+                         [(2, 24, 1), (16, 64, 4), (16, 4, 1), (64, 16, 5), (1, 1, 1)])
+def test_default_jobs_follows_cores_and_memory(monkeypatch, cores, memory_gib, jobs):
+    monkeypatch.setattr(batch.os, "cpu_count", lambda: cores)
+    pages = {"SC_PHYS_PAGES": memory_gib * 2**18, "SC_PAGE_SIZE": 4096}
+    monkeypatch.setattr(batch.os, "sysconf", lambda name: pages[name])
+    assert default_jobs() == jobs
+
+
+def test_watch_help_states_the_jobs_default():
+    run = subprocess.run([*CLI, "watch", "--help"], capture_output=True, text=True, check=True)
+    assert f"(here: {default_jobs()})" in " ".join(run.stdout.split())
+
+
+def test_a_journal_of_the_earlier_version_keeps_its_clip_names(tmp_path, quick_preset):
+    """Journals keyed by file name (before issue 14) still own their clips: no duplicates."""
+    import sqlite3
+
+    path = photo(tmp_path / "in" / "a.jpg", seed=1)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.mp4").write_bytes(b"clip of an earlier version")
+    legacy = sqlite3.connect(out / ".kbbatch-journal.sqlite")
+    legacy.execute("CREATE TABLE jobs (source TEXT PRIMARY KEY, fingerprint TEXT NOT NULL,"
+                   " settings TEXT NOT NULL, state TEXT NOT NULL, output TEXT, error TEXT,"
+                   " attempts INTEGER NOT NULL DEFAULT 0, seconds REAL, updated REAL NOT NULL)")
+    legacy.execute("INSERT INTO jobs VALUES ('a.jpg', ?, 'x', 'done', 'a.mp4', NULL, 1, 1.0, 1.0)",
+                   (f"{path.stat().st_size}:{path.stat().st_mtime_ns}",))
+    legacy.commit()
+    legacy.close()
+    report = run_folder(tmp_path / "in", out, quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["done"]
+    assert visible_clips(out) == ["a.mp4"] and (out / "a.mp4").stat().st_size > 1000

@@ -1,0 +1,95 @@
+"""Do no harm: a photo whose clip would look broken gets less parallax, and says so (item 4)."""
+
+import json
+
+import cv2
+import numpy as np
+
+from kbbatch import paper
+from kbbatch.batch import REPORT_NAME, ClipOptions, run_folder
+from kbbatch.camera import Crop, Plan, SceneGeometry, depth_from_disparity, nearest_depth
+from kbbatch.depth import DepthOptions
+from kbbatch.manifest import load_manifest
+from kbbatch.risk import FILL_FRACTION_MAX, FRAGMENT_COUNT_MAX, assess, count_fragments, relieved
+
+from .conftest import textured_image
+
+H, W = 360, 640
+
+
+def slab_scene(slab_width_px: int, shift_px: float = 60.0
+               ) -> tuple[np.ndarray, np.ndarray, SceneGeometry, Plan]:
+    """A near slab in front of a far wall, and a sideways move that looks behind it."""
+    photo = textured_image(H, W, seed=4)
+    disparity = np.full((H, W), 1.0, np.float32)
+    disparity[:, W // 2 - slab_width_px // 2: W // 2 + slab_width_px // 2] = 40.0
+    depth = depth_from_disparity(disparity, paper.focal_px(W))
+    scene = SceneGeometry(W, H, nearest_depth(depth))
+    start = Crop(W / 2 - shift_px, H / 2, 0.8 * W, 0.8 * H)
+    end = Crop(W / 2 + shift_px, H / 2, 0.8 * W / 1.25, 0.8 * H / 1.25)
+    return photo, depth, scene, Plan(start, end)
+
+
+def test_relief_scales_parallax_and_keeps_the_nearest_surface():
+    _, depth, _, _ = slab_scene(200)
+    half = relieved(depth, 0.5)
+    assert float(half.min()) == float(depth.min())
+    near, far = 1 / depth.min(), 1 / depth.max()
+    np.testing.assert_allclose(1 / half.max(), near - 0.5 * (near - far), rtol=1e-5)
+    assert np.ptp(relieved(depth, 0.0)) == 0
+
+
+def test_a_photo_within_budget_keeps_its_parallax():
+    photo, depth, scene, plan = slab_scene(40, shift_px=5.0)  # a pole, a zoom: little to fill
+    risk = assess(photo, depth, plan, scene)
+    assert risk.relief == 1.0 and risk.reasons == ()
+    assert risk.fill_fraction <= FILL_FRACTION_MAX
+
+
+def test_a_risky_photo_gets_less_parallax_and_the_reason():
+    photo, depth, scene, plan = slab_scene(300)  # a wide near slab: a lot of invented wall
+    risk = assess(photo, depth, plan, scene)
+    assert risk.fill_fraction > FILL_FRACTION_MAX
+    assert risk.relief < 1.0
+    assert any("fill" in reason for reason in risk.reasons)
+
+
+def test_fragments_are_counted_and_cap_the_relief():
+    photo, depth, scene, plan = slab_scene(0)
+    disparity = 1 / depth
+    for k in range(FRAGMENT_COUNT_MAX + 2):  # small floating shards, 10 x 10 px
+        disparity[40 + 60 * k: 50 + 60 * k, 100:110] *= 3
+    shards = (1 / disparity).astype(np.float32)
+    assert count_fragments(depth) == 0
+    assert count_fragments(shards) == FRAGMENT_COUNT_MAX + 2
+    risk = assess(photo, shards, plan, SceneGeometry(W, H, nearest_depth(shards)))
+    assert risk.relief <= 0.5 and any("fragments" in reason for reason in risk.reasons)
+
+
+def test_run_report_and_log_say_when_parallax_was_reduced(tmp_path, quick_preset, caplog):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    photo, depth, _, _ = slab_scene(300)
+    cv2.imwrite(str(folder / "slab.png"), photo[..., ::-1])
+    disparity = (1 / depth) / (1 / depth).max()
+    cv2.imwrite(str(folder / "slab.disparity.png"), (disparity * 65535).astype(np.uint16))
+    safe = textured_image(H, W, seed=9)
+    cv2.imwrite(str(folder / "flat.png"), safe[..., ::-1])
+    ramp = np.linspace(20000, 30000, H)[:, None].repeat(W, axis=1)  # a gentle ground plane
+    cv2.imwrite(str(folder / "flat.disparity.png"), ramp.astype(np.uint16))
+    # The slab's clip moves sideways, as the scene above (crops in fractions of the photo).
+    crops = {"units": "fraction", "start": {"center_x": 0.41, "center_y": 0.5, "width": 0.8},
+             "end": {"center_x": 0.59, "center_y": 0.5, "width": 0.64}}
+    manifest_path = tmp_path / "manifest.json"
+    manifest_path.write_text(json.dumps({"version": 1, "images": {"slab.png": crops}}))
+    options = ClipOptions(planner="center", depth=DepthOptions(backend="file"), threads=2)
+    report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
+                        manifest=load_manifest(manifest_path))
+    assert not report.failed
+    written = json.loads((tmp_path / "out" / REPORT_NAME).read_text())
+    by_name = {clip["source"].rsplit("/", 1)[-1]: clip for clip in written["clips"]}
+    assert by_name["slab.png"]["risk"]["relief"] < 1.0
+    assert by_name["slab.png"]["risk"]["reasons"]
+    assert by_name["flat.png"]["risk"]["relief"] == 1.0
+    assert "slab.png: parallax reduced to" in caplog.text
+    assert "flat.png" not in caplog.text

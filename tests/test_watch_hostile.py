@@ -1,0 +1,275 @@
+"""The daemon as a real process against a hostile user (issue 14): a second photo with a used
+name, a read-only inbox, a full outbox, a writer pausing longer than --settle, two daemons."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from kbbatch.journal import Journal
+
+from .conftest import textured_image
+from .test_nothing_lost import fill, tiny_mount  # noqa: F401 - a fixture
+from .test_watch import clips_in, finished_jobs, preset_file, start_daemon, stop, wait_for
+
+pytestmark = pytest.mark.slow
+CLI = [sys.executable, "-m", "kbbatch"]
+
+
+def photo_bytes(folder: Path, seed: int) -> bytes:
+    path = folder / f"seed-{seed}.jpg"
+    Image.fromarray(textured_image(180, 320, seed=seed)).save(path)
+    return path.read_bytes()
+
+
+def drop(inbox: Path, name: str, data: bytes) -> None:
+    """Write elsewhere, then rename into the inbox: how finished files should arrive."""
+    staging = inbox.parent / "staging"
+    staging.mkdir(exist_ok=True)
+    (staging / name).write_bytes(data)
+    os.rename(staging / name, inbox / name)
+
+
+def folders(tmp_path: Path) -> tuple[Path, Path, Path]:
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    return inbox, outbox, preset_file(tmp_path, 0.4)
+
+
+def daemon_log(tmp_path: Path) -> str:
+    return (tmp_path / "daemon.log").read_text(errors="replace")
+
+
+def test_a_second_photo_with_a_used_name_gets_its_own_clip(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    first, second = photo_bytes(tmp_path, 1), photo_bytes(tmp_path, 2)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        drop(inbox, "IMG_0001.jpg", first)
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "the first IMG_0001.jpg")
+        first_clip = (outbox / "IMG_0001.mp4").read_bytes()
+        drop(inbox, "IMG_0001.jpg", second)
+        wait_for(lambda: finished_jobs(outbox) == 2, 240, "the second IMG_0001.jpg")
+    finally:
+        assert stop(daemon) == 0
+    clips = clips_in(outbox)
+    assert len(clips) == 2 and "IMG_0001.mp4" in clips, clips
+    assert (outbox / "IMG_0001.mp4").read_bytes() == first_clip, "the first clip was replaced"
+    assert sorted(p.read_bytes() for p in (inbox / "done").iterdir()) == sorted([first, second])
+    log = daemon_log(tmp_path)
+    assert "named by its content" in log
+    depth_lines = [line for line in log.splitlines() if "depth from" in line]
+    assert depth_lines and all("IMG_0001.jpg: depth from" in line for line in depth_lines)
+    status = subprocess.run([*CLI, "status", str(outbox)], capture_output=True, text=True)
+    assert "done 2" in status.stdout, status.stdout
+
+
+def test_a_read_only_inbox_keeps_its_photos_and_the_daemon_runs_on(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    good = photo_bytes(tmp_path, 3)
+    (inbox / "good.jpg").write_bytes(good)
+    (inbox / "bad.jpg").write_text("not a photo")
+    past = time.time() - 3600  # written long ago: nothing is still writing them
+    for name in ("good.jpg", "bad.jpg"):
+        os.utime(inbox / name, (past, past))
+    read_only = tmp_path / "read-only-inbox"
+    read_only.mkdir()
+    mounted = subprocess.run(["mount", "--bind", str(inbox), str(read_only)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot bind-mount here: {mounted.stderr.strip()}")
+    try:
+        subprocess.run(["mount", "-o", "remount,ro,bind", str(read_only)], check=True)
+        daemon = start_daemon(read_only, outbox, preset)
+        try:
+            wait_for(lambda: finished_jobs(outbox) == 2, 240, "both photos")
+            wait_for(lambda: (outbox / "failed" / "bad.jpg.error.json").is_file(), 60,
+                     "the failure report in the outbox")
+            assert daemon.poll() is None, "the daemon died"
+        finally:
+            assert stop(daemon) == 0
+    finally:
+        subprocess.run(["umount", str(read_only)], check=False)
+    assert clips_in(outbox) == ["good.mp4"]
+    assert sorted(p.name for p in inbox.iterdir()) == ["bad.jpg", "good.jpg"]
+    log = daemon_log(tmp_path)
+    assert "read-only" in log and "Traceback" not in log
+
+
+def test_a_full_outbox_fails_the_photo_and_the_daemon_goes_on(tmp_path, tiny_mount):  # noqa: F811
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    outbox = tiny_mount / "outbox"
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 0.4)
+    daemon = start_daemon(inbox, outbox, preset, log_path=tmp_path / "daemon.log")
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "a.jpg")
+        filler = fill(tiny_mount, 0)
+        drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
+        wait_for(lambda: (inbox / "failed" / "b.jpg.error.json").is_file()
+                 or "pausing" in daemon_log(tmp_path), 240, "b.jpg failed or a pause")
+        assert daemon.poll() is None, "the daemon died"
+        filler.unlink()
+        drop(inbox, "c.jpg", photo_bytes(tmp_path, 3))
+        wait_for(lambda: (outbox / "c.mp4").is_file(), 240, "c.jpg once space is back")
+    finally:
+        assert stop(daemon) == 0
+    log = daemon_log(tmp_path)
+    assert "Traceback" not in log, log
+    journal = Journal(outbox)
+    try:
+        assert not journal.jobs("running")
+        assert journal.counts()["done"] >= 2
+    finally:
+        journal.close()
+    assert not list(outbox.glob(".*part*"))
+
+
+def test_a_writer_pausing_longer_than_settle_leaves_one_whole_photo(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    data = photo_bytes(tmp_path, 4)
+    daemon = start_daemon(inbox, outbox, preset)  # --settle 1
+    try:
+        wait_for(lambda: "watching" in daemon_log(tmp_path), 120, "the daemon to start")
+        chunk = len(data) // 4 + 1
+        for start in range(0, len(data), chunk):
+            with (inbox / "slow.jpg").open("ab") as handle:  # reopened, as a chunked copy does
+                handle.write(data[start : start + chunk])
+            time.sleep(3.0)  # three settle times: the daemon takes the partial file meanwhile
+        wait_for(lambda: (outbox / "slow.mp4").is_file() and (inbox / "done").is_dir()
+                 and not (inbox / "slow.jpg").exists(), 240, "the whole photo's clip")
+    finally:
+        assert stop(daemon) == 0
+    assert [p.read_bytes() for p in (inbox / "done").iterdir()] == [data], "one whole copy"
+    assert not (inbox / "failed").exists() or not list((inbox / "failed").iterdir())
+    assert clips_in(outbox) == ["slow.mp4"]
+
+
+def test_a_second_daemon_on_the_same_inbox_is_refused(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: "watching" in daemon_log(tmp_path), 120, "the first daemon")
+        other = tmp_path / "other-outbox"
+        second = subprocess.run([*CLI, "watch", str(inbox), "--out", str(other), "--preset",
+                                 str(preset)], capture_output=True, text=True, timeout=120)
+        assert second.returncode != 0
+        assert "already watching" in second.stderr and "Traceback" not in second.stderr
+    finally:
+        assert stop(daemon) == 0
+
+
+def test_subfolders_and_broken_links_in_the_inbox_are_logged(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    (inbox / "holiday").mkdir()
+    (inbox / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: "holiday: subfolders are not watched" in daemon_log(tmp_path)
+                 and "gone.jpg: broken symbolic link" in daemon_log(tmp_path), 120,
+                 "both warnings")
+    finally:
+        assert stop(daemon) == 0
+    assert "ERROR" not in daemon_log(tmp_path)
+    assert sorted(p.name for p in inbox.iterdir()) == ["gone.jpg", "holiday"]
+
+
+def test_sigterm_logs_no_error(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    for round_index in range(3):
+        daemon = start_daemon(inbox, outbox, preset)
+        started = round_index + 1
+        wait_for(lambda n=started: daemon_log(tmp_path).count("watching") >= n, 120,
+                 "the daemon")
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=60) == 0
+    assert "ERROR" not in daemon_log(tmp_path), daemon_log(tmp_path)
+
+
+def worker_pids(daemon: subprocess.Popen) -> list[int]:
+    """The daemon's worker processes (its children)."""
+    children = Path(f"/proc/{daemon.pid}/task/{daemon.pid}/children")
+    return [int(pid) for pid in children.read_text().split()] if children.exists() else []
+
+
+def kill_worker_mid_clip(daemon: subprocess.Popen, outbox: Path) -> None:
+    wait_for(lambda: list(outbox.glob(".*.part*")) and worker_pids(daemon), 180,
+             "a clip being encoded")
+    for pid in worker_pids(daemon):
+        os.kill(pid, signal.SIGKILL)
+
+
+def test_a_killed_worker_is_replaced_and_its_photo_retried(tmp_path):
+    """Issue 13, item 3: the daemon survives its workers."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 6.0, fps=25.0)  # long enough to be caught mid-encode
+    drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        kill_worker_mid_clip(daemon, outbox)
+        wait_for(lambda: finished_jobs(outbox) == 1, 300, "the retried clip")
+        assert daemon.poll() is None, "the daemon died with its worker"
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4"]
+    assert (inbox / "done" / "a.jpg").is_file() and not (inbox / "failed").exists()
+    assert "worker process rendering it died" in daemon_log(tmp_path)
+    journal = Journal(outbox)
+    try:
+        assert journal.get(inbox / "done" / "a.jpg").state == "done"
+    finally:
+        journal.close()
+
+
+def test_a_photo_that_kills_its_worker_twice_fails_and_the_daemon_goes_on(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 6.0, fps=25.0)
+    drop(inbox, "killer.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        kill_worker_mid_clip(daemon, outbox)
+        wait_for(lambda: "taking it again" in daemon_log(tmp_path), 120, "the retry")
+        kill_worker_mid_clip(daemon, outbox)
+        wait_for(lambda: (inbox / "failed" / "killer.jpg.error.json").is_file(), 120,
+                 "the failure report")
+        report = (inbox / "failed" / "killer.jpg.error.json").read_text()
+        assert "died 2 times" in report
+        drop(inbox, "after.jpg", photo_bytes(tmp_path, 2))
+        wait_for(lambda: (outbox / "after.mp4").is_file(), 300, "a photo after the failure")
+        assert daemon.poll() is None
+    finally:
+        assert stop(daemon) == 0
+    assert not list(outbox.glob(".*part*"))
+
+
+def test_photos_in_flight_beside_a_dead_worker_are_not_blamed(tmp_path):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 6.0, fps=25.0)
+    for seed, name in ((1, "a.jpg"), (2, "b.jpg")):
+        drop(inbox, name, photo_bytes(tmp_path, seed))
+    daemon = start_daemon(inbox, outbox, preset, "--jobs", "2")
+    try:
+        wait_for(lambda: len(list(outbox.glob(".*.part*"))) == 2
+                 and len(worker_pids(daemon)) == 2, 180, "two clips being encoded")
+        os.kill(worker_pids(daemon)[0], signal.SIGKILL)  # one worker only
+        wait_for(lambda: finished_jobs(outbox) == 2, 400, "both clips")
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4", "b.mp4"]
+    assert not (inbox / "failed").exists(), "an innocent photo was filed as failed"
