@@ -20,7 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from kbbatch.batch import ClipOptions, RunReport, run_folder
+from kbbatch.batch import RunReport, run_folder
+from kbbatch.pipeline import ClipOptions
 from kbbatch.presets import load_preset, with_overrides
 
 SHARED_PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"

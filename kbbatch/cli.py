@@ -1,4 +1,4 @@
-"""Command line: thin click commands over kbbatch.batch. `kbbatch FOLDER` renders a folder."""
+"""Command line: thin click commands over the runners. `kbbatch FOLDER` renders a folder."""
 
 from __future__ import annotations
 
@@ -13,9 +13,7 @@ from kbbatch import models as model_registry
 from kbbatch.batch import (
     CORES_PER_JOB,
     MEMORY_PER_JOB_GIB,
-    ClipOptions,
     EmptyFolderError,
-    OutputFolderError,
     RunReport,
     default_jobs,
     plan_folder,
@@ -24,6 +22,8 @@ from kbbatch.batch import (
 from kbbatch.depth import DepthOptions
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
+from kbbatch.outputs import OutputFolderError
+from kbbatch.pipeline import ClipOptions
 from kbbatch.planners import PLANNER_NAMES
 from kbbatch.presets import (
     Preset,

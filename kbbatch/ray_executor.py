@@ -18,7 +18,10 @@ from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from kbbatch.batch import (
+from kbbatch.depth.file import find_depth_file
+from kbbatch.images import atomic_output
+from kbbatch.manifest import ManifestEntry
+from kbbatch.pipeline import (
     CLIP_SUFFIX,
     SCRATCH_PREFIX,
     ClipJob,
@@ -27,9 +30,6 @@ from kbbatch.batch import (
     make_clip,
     remove_stale_scratch,
 )
-from kbbatch.depth.file import find_depth_file
-from kbbatch.images import atomic_output
-from kbbatch.manifest import ManifestEntry
 from kbbatch.presets import Preset
 
 RAY_INSTALL_HINT = 'pip install "kbbatch[ray]"'

@@ -26,16 +26,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from kbbatch import models
-from kbbatch.batch import (
-    ClipOptions,
-    ClipResult,
-    check_writable,
-    clip_settings,
-    make_clip,
-    output_names,
-    remove_partial_clips,
-    remove_stale_scratch,
-)
 from kbbatch.images import atomic_output, is_image_file, scan_folder, unreadable_reason
 from kbbatch.journal import (
     FolderLock,
@@ -45,6 +35,8 @@ from kbbatch.journal import (
     source_fingerprint,
 )
 from kbbatch.manifest import Manifest, ManifestEntry
+from kbbatch.outputs import check_writable, output_names, remove_partial_clips
+from kbbatch.pipeline import ClipOptions, ClipResult, clip_settings, make_clip, remove_stale_scratch
 from kbbatch.presets import Preset
 from kbbatch.ray_executor import RayClipPool, RayExecutor
 

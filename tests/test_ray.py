@@ -21,9 +21,10 @@ import cv2
 import numpy as np
 import pytest
 
-from kbbatch.batch import REPORT_NAME, SCRATCH_PREFIX, ClipOptions, run_folder
+from kbbatch.batch import REPORT_NAME, run_folder
 from kbbatch.encode import decode_frames, palindrome_order, probe
 from kbbatch.journal import JOURNAL_NAME
+from kbbatch.pipeline import SCRATCH_PREFIX, ClipOptions
 from kbbatch.presets import load_preset, with_overrides
 
 from .conftest import shared_photos
