@@ -16,7 +16,7 @@ The cloud is uploaded once per clip (TorchRenderer); frames come back as uint8.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -270,3 +270,13 @@ def _fill_from_background(image: torch.Tensor, front: torch.Tensor) -> torch.Ten
     fill = torch.where((source >= 0)[..., None], flat[source.clamp(min=0)],
                        torch.zeros((), dtype=image.dtype, device=image.device))
     return torch.where(empty[..., None], fill, image)
+
+
+def render_batches(cloud: PointCloud, views: Sequence[View], disparity_scale: float,
+                   device: str) -> Iterator[np.ndarray]:
+    """Finished frames of a clip in launches of several: (B, H, W, 3) uint8 arrays in the
+    order of views. The cloud goes to the device once, before the first launch."""
+    renderer = TorchRenderer(cloud, device, disparity_scale)
+    step = renderer.frames_per_launch()
+    for start in range(0, len(views), step):
+        yield renderer.render_frames(views[start:start + step]).cpu().numpy()
