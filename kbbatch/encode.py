@@ -83,11 +83,11 @@ def _check_encoder(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> N
     if formats and pix_fmt not in formats:
         raise EncoderError("pix_fmt", f"{codec} cannot write {pix_fmt!r}; it offers "
                                       f"{', '.join(sorted(formats))}")
-    refusal = _trial_refusal(codec, pix_fmt, encoder_preset, crf)
+    refusal = encoder_refusal(codec, pix_fmt, encoder_preset, crf)
     if refusal is None:
         return
     # An encoder that fails without the speed preset too (no GPU for NVENC) is the culprit.
-    if encoder_preset and _trial_refusal(codec, pix_fmt, "", crf) is None:
+    if encoder_preset and encoder_refusal(codec, pix_fmt, "", crf) is None:
         field, value = "encoder_preset", encoder_preset
     else:
         field, value = "codec", codec
@@ -97,7 +97,7 @@ def _check_encoder(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> N
     raise EncoderError(field, f"ffmpeg refuses {codec} with {field} {value!r}: {refusal}")
 
 
-def _trial_refusal(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> str | None:
+def encoder_refusal(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> str | None:
     """Why ffmpeg fails to encode two tiny frames with these settings (None: it does not)."""
     trial = Preset("trial", "", TRIAL_SIZE_PX, TRIAL_SIZE_PX, 25.0, 0.08, "linear", 1.0, "in",
                    0.0, codec, crf, pix_fmt, encoder_preset)
@@ -115,6 +115,20 @@ def palindrome_order(frames_forward: int) -> list[int]:
     return forward + forward[-2:0:-1]
 
 
+def quality_options(preset: Preset) -> dict[str, object]:
+    """ffmpeg output options for the preset's quality and speed, in its encoder's terms."""
+    options: dict[str, object] = {}
+    if preset.codec.endswith(NVENC_SUFFIX):  # constant quality, as crf is for x264
+        options.update({"rc": "vbr", "cq": preset.crf, "b:v": 0})
+    else:
+        options["crf"] = preset.crf
+    if preset.codec == "libvpx-vp9":
+        options["b:v"] = 0  # constant quality with crf
+    if preset.encoder_preset:
+        options["preset"] = preset.encoder_preset
+    return options
+
+
 def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[str]:
     """The ffmpeg command that reads raw RGB frames on stdin and writes the clip."""
     stream = ffmpeg.input(
@@ -126,17 +140,10 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
         "pix_fmt": preset.pix_fmt,
         "r": preset.fps,
         "format": container,
+        **quality_options(preset),
     }
-    if preset.codec.endswith(NVENC_SUFFIX):  # constant quality, as crf is for x264
-        options.update({"rc": "vbr", "cq": preset.crf, "b:v": 0})
-    else:
-        options["crf"] = preset.crf
-    if preset.encoder_preset:
-        options["preset"] = preset.encoder_preset
     if container == "mp4":
         options["movflags"] = "+faststart"
-    if preset.codec == "libvpx-vp9":
-        options["b:v"] = 0  # constant quality with crf
     out = ffmpeg.output(stream, str(path), **options).global_args("-loglevel", "error", "-nostdin")
     return ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
 

@@ -32,12 +32,12 @@ from kbbatch.render import (
     PointCloud,
 )
 
-BATCH_ENTRIES_CPU = 1 << 25
-"""Point-frame pairs one launch may hold on torch's CPU device (each costs about 60 bytes in
-the intermediate tensors: 32 M pairs are about 2 GB)."""
+BATCH_ENTRIES_CPU = 1 << 23
+"""Point-frame pairs one launch may hold on torch's CPU device (each costs about 100 bytes in
+the intermediate tensors: 8 M pairs, three 1080p frames, stay under 1 GB)."""
 
 BATCH_ENTRIES_PER_GIB = 1 << 23
-"""Point-frame pairs one launch may hold per GiB of free GPU memory (with the same margin)."""
+"""Point-frame pairs one launch may hold per GiB of free GPU memory (with a margin)."""
 
 MAX_FRAMES_PER_LAUNCH = 32
 """More frames per launch stop paying once the GPU is busy; this bounds the latency."""
@@ -45,24 +45,31 @@ MAX_FRAMES_PER_LAUNCH = 32
 
 @dataclass(frozen=True)
 class _Splats:
-    """Bilinear corners of visible points in a batch of frames, flattened: target pixel (index
-    into B x H x W), bilinear weight, the point's inverse depth and its index in the cloud."""
+    """The bilinear corners of points first..last-1 in a batch of B frames: one entry per
+    frame and point (no compaction, which costs more than it saves), per corner the target
+    pixel (an index into B x H x W, or the sink just past it where the corner is off the
+    frame, the point not visible or the weight negligible) and the weight (0 at the sink)."""
 
-    pixel: torch.Tensor  # int64
-    weight: torch.Tensor  # float32
-    inv_z: torch.Tensor  # float32
-    point: torch.Tensor  # int64
+    pixels: list[torch.Tensor]  # 4 x (B * M,) int64
+    weights: list[torch.Tensor]  # 4 x (B * M,) float32
+    inv_z: torch.Tensor  # (B * M,) float32
+    frames: int
+    first: int
+    last: int
+
+    def values(self, colour: torch.Tensor, weight: torch.Tensor,
+               premultiplied: torch.Tensor) -> torch.Tensor:
+        """(B * M, 4) rows to accumulate: colour x premultiplied weight, then the weight."""
+        rows = torch.empty((self.frames, self.last - self.first, 4), dtype=torch.float32,
+                           device=colour.device)
+        torch.mul(colour[self.first:self.last][None],
+                  premultiplied.view(self.frames, -1, 1), out=rows[..., :3])
+        rows[..., 3] = weight.view(self.frames, -1)
+        return rows.view(-1, 4)
 
 
-def _scatter_max(size: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    out = torch.zeros(size, dtype=torch.float32, device=values.device)
-    return out.scatter_reduce_(0, index, values, reduce="amax", include_self=True)
-
-
-def _scatter_sum(size: int, index: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    shape = (size, *values.shape[1:])
-    return torch.zeros(shape, dtype=torch.float32, device=values.device).index_add_(0, index,
-                                                                                  values)
+def _scatter_max(out: torch.Tensor, pixel: torch.Tensor, values: torch.Tensor) -> None:
+    out.scatter_reduce_(0, pixel, values, reduce="amax", include_self=True)
 
 
 class TorchRenderer:
@@ -73,7 +80,6 @@ class TorchRenderer:
     def __init__(self, cloud: PointCloud, device: torch.device | str,
                  disparity_scale: float) -> None:
         self.device = torch.device(device)
-        opaque = cloud.opaque_count
 
         def upload(array: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(array)).to(self.device, dtype)
@@ -81,9 +87,9 @@ class TorchRenderer:
         self.xyz = upload(np.stack([cloud.x, cloud.y, cloud.z]), torch.float32)
         self.colour = upload(cloud.colour, torch.float32)
         self.alpha = upload(cloud.alpha, torch.float32) / 255.0
-        self.opaque_count = opaque
-        self.soft_z = np.float32(SOFT_Z_DISPARITY_PX / disparity_scale)
-        self.crack_z = np.float32(CRACK_DISPARITY_PX / disparity_scale)
+        self.opaque_count = cloud.opaque_count
+        self.soft_z = float(np.float32(SOFT_Z_DISPARITY_PX / disparity_scale))
+        self.crack_z = float(np.float32(CRACK_DISPARITY_PX / disparity_scale))
 
     def __len__(self) -> int:
         return int(self.xyz.shape[1])
@@ -108,7 +114,7 @@ class TorchRenderer:
     def _project(self, views: Sequence[View], first: int, last: int, height: int,
                  width: int) -> _Splats:
         """Bilinear corners of points first..last-1 in every view (kbbatch.render's
-        _project_chunk and _corner): visible points, corners inside and weighted enough."""
+        _project_chunk and _corner, with the same float32 arithmetic)."""
         def column(values: list[float]) -> torch.Tensor:
             return torch.tensor(values, dtype=torch.float32, device=self.device)[:, None]
 
@@ -124,72 +130,124 @@ class TorchRenderer:
         px = focal * (x[None] - cam_x) * inv_z + ppx
         py = focal * (y[None] - cam_y) * inv_z + ppy
         visible = (depth > NEAR_PLANE) & (px > -1) & (py > -1) & (px < width) & (py < height)
-        frame, point = visible.nonzero(as_tuple=True)
-        px, py, inv_z = px[frame, point], py[frame, point], inv_z[frame, point]
-        del visible, depth
+        del depth
         x0 = px.floor()
         y0 = py.floor()
         fx = px - x0
         fy = py - y0
-        x0 = x0.to(torch.int64)
-        y0 = y0.to(torch.int64)
-        base = frame * (height * width)
-        pixels, weights, inv_zs, points = [], [], [], []
+        del px, py
+        x0 = x0.to(torch.int32)
+        y0 = y0.to(torch.int32)
+        size = len(views) * height * width
+        base = torch.arange(len(views), device=self.device)[:, None] * (height * width)
+        pixels, weights = [], []
         for dy in (0, 1):
             for dx in (0, 1):
                 xx = x0 + dx
                 yy = y0 + dy
                 weight = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-                keep = ((xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
+                keep = (visible & (xx >= 0) & (xx < width) & (yy >= 0) & (yy < height)
                         & (weight > MIN_SPLAT_WEIGHT))
-                pixels.append((base + yy * width + xx)[keep])
-                weights.append(weight[keep])
-                inv_zs.append(inv_z[keep])
-                points.append((point + first)[keep])
-        return _Splats(torch.cat(pixels), torch.cat(weights), torch.cat(inv_zs),
-                       torch.cat(points))
+                pixel = torch.where(keep, base + yy.to(torch.int64) * width + xx, size)
+                pixels.append(pixel.view(-1))
+                weights.append(torch.where(keep, weight, 0.0).view(-1))
+        return _Splats(pixels, weights, inv_z.view(-1), len(views), first, last)
+
+    def _splat_opaque(self, views: Sequence[View], height: int, width: int
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The opaque points' soft z-buffer, exactly as the sequential kernel decides it.
+
+        In cloud order, a pixel's front is the running maximum M of the inverse depths that
+        reached it; a point restarts the pixel when it is nearer than M by more than the
+        tolerance, blends in when within it, and is hidden otherwise. So the points kept are
+        those from the last restart on that were within the tolerance of M when they came.
+        Sorting the splats by pixel, then by point, turns M into a prefix maximum (the pixel
+        in the high bits of the key restarts it at every new pixel). Returns each pixel's
+        front (inverse depth, 0: none) and its summed colour x weight and weight, each with
+        a sink entry at the end."""
+        size = len(views) * height * width
+        splats = self._project(views, 0, self.opaque_count, height, width)
+        points_per_frame = self.opaque_count
+        pixel = torch.cat(splats.pixels)
+        entry = (pixel < size).nonzero().squeeze(1)
+        pixel = pixel[entry]
+        weight = torch.cat(splats.weights)[entry]
+        all_inv_z = splats.inv_z
+        del splats
+        frame_point = entry % (len(views) * points_per_frame)
+        point = frame_point % points_per_frame
+        order = (pixel * points_per_frame + point).argsort()
+        pixel, weight, point = pixel[order], weight[order], point[order]
+        inv_z = all_inv_z[frame_point[order]]
+        del entry, frame_point, order, all_inv_z
+        # Running maximum per pixel: the key's high bits are the pixel, its low bits the
+        # float's bit pattern (ordered as the value, for positive floats).
+        key = (pixel << 32) | inv_z.view(torch.int32).to(torch.int64)
+        running = (key.cummax(0).values & 0xFFFFFFFF).to(torch.int32).view(torch.float32)
+        first = torch.ones_like(pixel, dtype=torch.bool)
+        first[1:] = pixel[1:] != pixel[:-1]
+        before = torch.zeros_like(inv_z)
+        before[1:] = running[:-1]
+        before = torch.where(first, 0.0, before)  # the front when the point arrived
+        del key, running
+        restart = first | (before < inv_z - self.soft_z)
+        index = torch.arange(pixel.shape[0], device=self.device)
+        latest = torch.where(restart, index, -1).cummax(0).values
+        last_restart = torch.full((size + 1,), -1, dtype=torch.int64, device=self.device)
+        last_restart.scatter_reduce_(0, pixel, latest, reduce="amax", include_self=True)
+        kept = (index >= last_restart[pixel]) & (before <= inv_z + self.soft_z)
+        del restart, latest, last_restart, index, before, first
+        weight = torch.where(kept, weight, 0.0)
+        front = torch.zeros(size + 1, dtype=torch.float32, device=self.device)
+        _scatter_max(front, pixel, inv_z)
+        rows = torch.empty((pixel.shape[0], 4), dtype=torch.float32, device=self.device)
+        torch.mul(self.colour[point], weight[:, None], out=rows[:, :3])
+        rows[:, 3] = weight
+        cell = torch.zeros((size + 1, 4), dtype=torch.float32, device=self.device)
+        return front, cell.index_add_(0, pixel, rows)
 
     def _render(self, views: Sequence[View], height: int, width: int) -> torch.Tensor:
         size = len(views) * height * width
-        soft_z = float(self.soft_z)
-        # Opaque points: a soft z-buffer, the front being the nearest surface of the pixel.
-        opaque = self._project(views, 0, self.opaque_count, height, width)
-        front_opaque = _scatter_max(size, opaque.pixel, opaque.inv_z)
-        blends = opaque.inv_z >= front_opaque[opaque.pixel] - soft_z
-        weight = opaque.weight[blends]
-        cell_opaque = _scatter_sum(size, opaque.pixel[blends], torch.cat(
-            [self.colour[opaque.point[blends]] * weight[:, None], weight[:, None]], dim=1))
-        del opaque, blends, weight
+
+        def zeros(*shape: int) -> torch.Tensor:  # per pixel, plus the sink
+            return torch.zeros((size + 1, *shape), dtype=torch.float32, device=self.device)
+
+        soft_z = self.soft_z
+        front_opaque, cell_opaque = self._splat_opaque(views, height, width)
 
         # Soft points: either a new front clearly before the opaque one (which then is the
         # surface behind), or blended into it; farther ones z-buffered into the surface behind.
         soft = self._project(views, self.opaque_count, len(self), height, width)
-        front_soft = _scatter_max(size, soft.pixel, soft.inv_z)
+        alpha = self.alpha[self.opaque_count:][None].expand(len(views), -1).reshape(-1)
+        front_soft = zeros()
+        for pixel in soft.pixels:
+            _scatter_max(front_soft, pixel, soft.inv_z)
         soft_front = front_soft > front_opaque + soft_z
         lowest = torch.where(soft_front, front_soft, front_opaque) - soft_z
-        alpha = self.alpha[soft.point]
-        colour = self.colour[soft.point]
-        in_front = soft.inv_z >= lowest[soft.pixel]
-        w = soft.weight[in_front]
-        wa = w * alpha[in_front]
-        pixel = soft.pixel[in_front]
-        cell_soft = _scatter_sum(size, pixel, torch.cat([colour[in_front] * wa[:, None],
-                                                         w[:, None]], dim=1))
-        clear = _scatter_sum(size, pixel, w - wa)
-        blended_front = _scatter_max(size, pixel, soft.inv_z[in_front])
-        behind = ~in_front & (soft.weight * alpha > MIN_SPLAT_WEIGHT)
-        back_soft = _scatter_max(size, soft.pixel[behind], soft.inv_z[behind])
+        cell_soft, clear, blended_front, back_soft = zeros(4), zeros(), zeros(), zeros()
+        for pixel, weight in zip(soft.pixels, soft.weights, strict=True):
+            in_front = soft.inv_z >= lowest[pixel]
+            w = torch.where(in_front, weight, 0.0)
+            wa = w * alpha
+            cell_soft.index_add_(0, pixel, soft.values(self.colour, w, wa))
+            clear.index_add_(0, pixel, w - wa)
+            _scatter_max(blended_front, pixel, torch.where(in_front, soft.inv_z, 0.0))
+            behind = ~in_front & (weight * alpha > MIN_SPLAT_WEIGHT)
+            _scatter_max(back_soft, pixel, torch.where(behind, soft.inv_z, 0.0))
         back = torch.maximum(torch.where(soft_front, front_opaque, 0.0), back_soft)
-        behind &= soft.inv_z >= back[soft.pixel] - soft_z
-        wa = soft.weight[behind] * alpha[behind]
-        back_cell = _scatter_sum(size, soft.pixel[behind],
-                                 torch.cat([colour[behind] * wa[:, None], wa[:, None]], dim=1))
-        del soft, alpha, colour, in_front, behind, w, wa, pixel
+        back_cell = zeros(4)
+        for pixel, weight in zip(soft.pixels, soft.weights, strict=True):
+            behind = ((soft.inv_z < lowest[pixel]) & (weight * alpha > MIN_SPLAT_WEIGHT)
+                      & (soft.inv_z >= back[pixel] - soft_z))
+            wa = torch.where(behind, weight * alpha, 0.0)
+            back_cell.index_add_(0, pixel, soft.values(self.colour, wa, wa))
+        del soft, alpha
         opaque_behind = soft_front & (front_opaque > 0) & (front_opaque >= back - soft_z)
         back_cell += torch.where(opaque_behind[:, None], cell_opaque, 0.0)
-        cell = torch.where(soft_front[:, None], cell_soft, cell_opaque + cell_soft)
+        cell = torch.where(soft_front[:, None], cell_soft, cell_opaque + cell_soft)[:size]
         front = torch.where(soft_front, front_soft, torch.maximum(front_opaque, blended_front))
         del cell_opaque, cell_soft, front_opaque, front_soft, blended_front, lowest
+        front, clear, back, back_cell = front[:size], clear[:size], back[:size], back_cell[:size]
         soft_pixel = clear > 0
         back = torch.where(soft_pixel, back, 0.0)
 
@@ -197,7 +255,7 @@ class TorchRenderer:
         # Crack filter on the solid surfaces: a mostly see-through fringe shows what is behind.
         see_through = soft_pixel & (total - clear < 0.5 * total)
         solid = torch.where(see_through, back, front).view(len(views), height, width)
-        cracked = _cracks(solid, float(self.crack_z)).view(-1) & ~soft_pixel
+        cracked = _cracks(solid, self.crack_z).view(-1) & ~soft_pixel
         front = torch.where(cracked, 0.0, front)
 
         # Composite: premultiplied front over the back where the front is a soft edge.
@@ -234,42 +292,39 @@ def _fill_from_background(image: torch.Tensor, front: torch.Tensor) -> torch.Ten
     """Every empty pixel (front 0) takes the colour of the farthest covered pixel among the
     nearest ones to its left, right, above and below (render's finishing fill)."""
     empty = front <= 0
-    if not bool(empty.any()):
+    holes = empty.view(-1).nonzero().squeeze(1)
+    if holes.numel() == 0:
         return image
     frames, height, width = front.shape
-    columns = torch.arange(width, device=front.device).expand(frames, height, width)
-    rows = torch.arange(height, device=front.device)[:, None].expand(frames, height, width)
-    inf = torch.tensor(float("inf"), device=front.device)
-
-    def nearest(positions: torch.Tensor, dim: int, flip: bool) -> torch.Tensor:
-        """Position of the nearest covered pixel before each pixel along dim (-1: none)."""
+    device = front.device
+    hole_x = holes % width
+    hole_y = holes // width % height
+    flat_front = front.view(-1)
+    candidates_front, candidates_index = [], []
+    for dim, reverse in ((2, False), (2, True), (1, False), (1, True)):
+        length = front.shape[dim]
+        shape = [1, 1, 1]
+        shape[dim] = length
+        positions = torch.arange(length, device=device, dtype=torch.int32).view(shape)
+        if reverse:  # nearest after: the nearest before, counted from the other end
+            positions = length - 1 - positions
         marked = torch.where(empty, -1, positions)
-        if flip:
-            size = positions.shape[dim]
-            marked = torch.where(empty, -1, size - 1 - positions).flip(dim)
-            found = marked.cummax(dim).values.flip(dim)
-            return torch.where(found >= 0, size - 1 - found, -1)
-        return marked.cummax(dim).values
-
-    candidates_front = []
-    candidates_index = []
-    flat_base = torch.arange(frames, device=front.device)[:, None, None] * (height * width)
-    for positions, dim, flip in ((columns, 2, False), (columns, 2, True), (rows, 1, False),
-                                 (rows, 1, True)):
-        found = nearest(positions, dim, flip)
-        valid = found >= 0
-        safe = found.clamp(min=0)
-        index = flat_base + (safe if dim == 1 else rows) * width + (columns if dim == 1 else safe)
-        value = torch.where(valid, front.reshape(-1)[index], inf)
-        candidates_front.append(value)
+        if reverse:
+            found = marked.flip(dim).cummax(dim).values.flip(dim)
+        else:
+            found = marked.cummax(dim).values
+        step = found.view(-1)[holes].to(torch.int64)
+        valid = step >= 0
+        at = length - 1 - step if reverse else step  # the covered pixel's column or row
+        index = (holes + (at - hole_x) if dim == 2 else holes + (at - hole_y) * width)
+        index = torch.where(valid, index, 0)
+        candidates_front.append(torch.where(valid, flat_front[index], float("inf")))
         candidates_index.append(torch.where(valid, index, -1))
-    values = torch.stack(candidates_front)
-    choice = values.argmin(dim=0, keepdim=True)  # ties: the first (left, right, up, down)
+    choice = torch.stack(candidates_front).argmin(dim=0, keepdim=True)  # ties: the first
     source = torch.stack(candidates_index).gather(0, choice)[0]
-    flat = image.reshape(-1, 3)
-    fill = torch.where((source >= 0)[..., None], flat[source.clamp(min=0)],
-                       torch.zeros((), dtype=image.dtype, device=image.device))
-    return torch.where(empty[..., None], fill, image)
+    flat = image.view(-1, 3).clone()
+    flat[holes] = torch.where((source >= 0)[:, None], flat[source.clamp(min=0)], 0)
+    return flat.view(image.shape)
 
 
 def render_batches(cloud: PointCloud, views: Sequence[View], disparity_scale: float,

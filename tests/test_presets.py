@@ -129,7 +129,7 @@ def test_a_preset_naming_an_encoder_this_ffmpeg_lacks_fails_at_load(tmp_path):
 
 
 def test_nvenc_without_an_nvidia_gpu_blames_the_codec_at_load(tmp_path):
-    from kbbatch.encode import _encoders, _trial_refusal
+    from kbbatch.encode import _encoders, encoder_refusal
 
     path = write(tmp_path / "nvenc.toml",
                  'base = "slideshow"\ncodec = "h264_nvenc"\nencoder_preset = "p5"\n')
@@ -137,7 +137,7 @@ def test_nvenc_without_an_nvidia_gpu_blames_the_codec_at_load(tmp_path):
         with pytest.raises(PresetError, match="has no video encoder 'h264_nvenc'"):
             load_preset(path)
         return
-    if _trial_refusal("h264_nvenc", "yuv420p", "p5", 18) is None:
+    if encoder_refusal("h264_nvenc", "yuv420p", "p5", 18) is None:
         assert load_preset(path).codec == "h264_nvenc"  # a machine with a working NVENC
         return
     with pytest.raises(PresetError, match=r"nvenc.toml: setting 'codec': ffmpeg refuses "

@@ -15,6 +15,7 @@ from kbbatch.images import read_image
 from kbbatch.render import PointCloud, back_project, render_frame
 
 from .conftest import shared_photos
+from .test_crowds import real_models_or_skip
 from .test_render import DISPARITY_SCALE, FAR, NEAR, SCENE, card_scene, shifted_view
 
 torch = pytest.importorskip("torch", reason="torch is not installed (pip install "
@@ -77,19 +78,23 @@ def test_a_launch_of_several_frames_equals_frames_one_by_one():
             views[0].position, views[0].focal_px, 10.0, 10.0, 20, 20)])
 
 
-def test_real_photos_every_frame_matches_numba(quick_preset):
-    """Frame by frame over whole (short) clips of real photos, soft layers and fill included."""
+def test_real_photos_every_frame_matches_numba(quick_preset, monkeypatch):
+    """Frame by frame over whole (short) clips of real photos, soft layers and fill included
+    (the segmentation models make the depth edges that soft layers need)."""
+    real_models_or_skip(monkeypatch)
     photos = [p for p in shared_photos(1)[0].parent.iterdir() if p.stem in REAL_PHOTOS]
     if len(photos) < len(REAL_PHOTOS):
         pytest.skip(f"needs the shared photos {', '.join(REAL_PHOTOS)}")
+    with_soft_layers = 0
     for path in sorted(photos):
         prepared = prepare_scene(read_image(path), path, quick_preset, ClipOptions(), {})
-        assert prepared.cloud.opaque_count < len(prepared.cloud), "no soft layers here"
+        with_soft_layers += prepared.cloud.opaque_count < len(prepared.cloud)
         frames = list(batch.render_clip_frames(prepared, quick_preset, 2, device=TORCH_CPU))
         assert len(frames) == quick_preset.frames_total
         for index, t in enumerate(frame_times(quick_preset)):
             expected = batch.frame_at(prepared, quick_preset, t)
             assert psnr_db(frames[index], expected) >= MIN_PSNR_DB, (path.name, index)
+    assert with_soft_layers, "none of the photos has soft layers (depth edges)"
 
 
 def test_prefetched_keeps_order_raises_errors_and_stops_when_closed():
