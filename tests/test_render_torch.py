@@ -119,3 +119,24 @@ def test_prefetched_keeps_order_raises_errors_and_stops_when_closed():
     stream.close()
     assert len(produced) <= 5, "the producer ran on after the consumer stopped"
     assert not [t for t in threading.enumerate() if t.name == "kbbatch-prefetch"]
+
+
+def test_a_clip_rendered_by_torch_is_encoded_whole(tmp_path, quick_preset):
+    from kbbatch.encode import decode_frames, probe
+    from kbbatch.images import write_image
+
+    from .conftest import textured_image
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    write_image(folder / "a.png", textured_image(180, 320, seed=5))
+    options = ClipOptions(threads=2, device=TORCH_CPU)
+    report = batch.run_folder(folder, tmp_path / "out", quick_preset, options,
+                              show_progress=False)
+    assert [r.status for r in report.results] == ["done"], report.results[0].error
+    assert report.device == TORCH_CPU
+    clip = tmp_path / "out" / "a.mp4"
+    info = probe(clip)
+    frames = list(decode_frames(clip, info.width_px, info.height_px))
+    assert len(frames) == quick_preset.frames_total
+    assert min(f.mean() for f in frames) > 5, "a frame came out black"
