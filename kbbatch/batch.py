@@ -38,6 +38,7 @@ from kbbatch.camera import working_size as compute_working_size
 from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
 from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.file import find_depth_file
+from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
@@ -98,8 +99,8 @@ class ClipOptions:
     cache_depth: bool = True
     save_depth: bool = False
     device: str = "cpu"
-    """Where frames are rendered: "cpu" (numba) or "cuda" (torch), as kbbatch.device
-    resolves --device; or kbbatch.device.TORCH_CPU."""
+    """Where frames are rendered: a --device value (auto, cpu or cuda), resolved by the
+    process that renders, or kbbatch.device.TORCH_CPU."""
 
 
 @dataclass
@@ -116,6 +117,7 @@ class ClipResult:
     detail: str | None = None  # traceback of an unexpected failure
     note: str | None = None  # e.g. why the clip is named by content
     risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
+    device: str | None = None  # where the frames were rendered
 
 
 @dataclass(frozen=True)
@@ -269,7 +271,8 @@ def render_clip_frames(
 ) -> Iterator[np.ndarray]:
     """The palindromic frame sequence; each time step is rendered once, on the CPU in
     parallel threads, or on a GPU in launches of several frames while the encoder takes the
-    previous ones."""
+    previous ones. device: as ClipOptions.device."""
+    device = frames_device(device)
     times = frame_times(preset)
     frame_bytes = preset.width_px * preset.height_px * 3
     shape = (len(times), preset.height_px, preset.width_px, 3)
@@ -496,16 +499,18 @@ def make_clip(
             save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)
         clock = time.perf_counter()
+        result.device = frames_device(options.device)
         with progress_bar(total=preset.frames_forward, desc=f"  frames {source.name}",
                           unit="frame", leave=False, disable=not show_progress) as bar:
             frames = render_clip_frames(prepared, preset, options.threads, bar.update,
-                                        options.device)
+                                        result.device)
             with atomic_output(output, CLIP_SUFFIX) as temp_path:
                 result.frames = encode_frames(temp_path, frames, preset)
         timings["frames+encode"] = time.perf_counter() - clock
         result.output = str(output)
         result.status = "done"
-    except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
+    except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
+            DeviceError) as error:
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
         result.error = f"{source}: {type(error).__name__}: {error}"
@@ -523,7 +528,7 @@ class RunReport:
     results: list[ClipResult]
     notes: list[str] = field(default_factory=list)  # what was passed over, and why
     stopped_by: str | None = None  # the signal that ended the run early
-    device: str = "cpu"  # where the frames were rendered
+    device: str = "cpu"  # the --device setting; each clip says where it was rendered
     onnx_providers: dict[str, str] = field(default_factory=dict)
     """Each ONNX model this run used, and the onnxruntime provider its session ran on."""
 

@@ -125,10 +125,13 @@ def _clip_options(options: dict, **more) -> ClipOptions:
                          adjust=not options.pop("no_adjust"),
                          refine=not options.pop("no_refine"))
     if "device" in options:
-        try:
-            more["device"] = resolve_device(options.pop("device"))
-        except DeviceError as error:
-            raise click.BadParameter(str(error), param_hint="--device") from error
+        device = options.pop("device")
+        if device == "cuda":  # fail before anything is written; auto resolves where it renders
+            try:
+                resolve_device(device)
+            except DeviceError as error:
+                raise click.BadParameter(str(error), param_hint="--device") from error
+        more["device"] = device
     return ClipOptions(planner=options.pop("planner"), depth=depth, **more)
 
 

@@ -6,6 +6,7 @@ at once with the reason, not at the first frame. torch is an optional extra (`kb
 
 from __future__ import annotations
 
+import functools
 import os
 
 DEVICE_NAMES = ("auto", "cpu", "cuda")
@@ -56,3 +57,10 @@ def resolve_device(name: str) -> str:
 def torch_device(device: str) -> str:
     """The torch device of a resolved device other than `cpu`."""
     return "cpu" if device == TORCH_CPU else device
+
+
+@functools.cache
+def frames_device(name: str) -> str:
+    """The device this process renders frames on for a --device value: resolved where the
+    frames are made (a daemon worker, a cluster node), once per process."""
+    return name if name == TORCH_CPU else resolve_device(name)

@@ -70,7 +70,7 @@ def test_run_report_names_the_device_and_the_provider_each_network_ran_on(
     report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False)
     assert [r.status for r in report.results] == ["done"], report.results[0].error
     written = json.loads((tmp_path / "out" / REPORT_NAME).read_text())
-    assert written["device"] == "cpu"
+    assert written["device"] == "cpu" and written["clips"][0]["device"] == "cpu"
     assert written["onnx_providers"]["depth_anything_v2_small.onnx"] == "CPUExecutionProvider"
 
 
@@ -80,3 +80,16 @@ def test_without_torch_auto_is_the_cpu_and_cuda_says_how_to_get_it(monkeypatch):
     with pytest.raises(DeviceError, match=r"torch is not installed \(pip install "
                                           r"'kbbatch\[torch\]'\)"):
         resolve_device("cuda")
+
+
+def test_auto_is_resolved_where_the_frames_are_rendered(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    write_image(folder / "a.png", textured_image(90, 160))
+    result = CliRunner().invoke(cli.main, ["render", str(folder), "-o", str(tmp_path / "out"),
+                                           "--preset", "preview", "--duration", "0.4",
+                                           "--fps", "10", "--quiet", "--device", "auto"])
+    assert result.exit_code == 0, result.output
+    written = json.loads((tmp_path / "out" / REPORT_NAME).read_text())
+    assert written["device"] == "auto"
+    assert written["clips"][0]["device"] == resolve_device("auto")

@@ -134,7 +134,7 @@ def test_a_clip_rendered_by_torch_is_encoded_whole(tmp_path, quick_preset):
     report = batch.run_folder(folder, tmp_path / "out", quick_preset, options,
                               show_progress=False)
     assert [r.status for r in report.results] == ["done"], report.results[0].error
-    assert report.device == TORCH_CPU
+    assert report.device == TORCH_CPU and report.results[0].device == TORCH_CPU
     clip = tmp_path / "out" / "a.mp4"
     info = probe(clip)
     frames = list(decode_frames(clip, info.width_px, info.height_px))
