@@ -1,7 +1,8 @@
 """Which device renders the frames: the CPU (numba kernels) or a CUDA GPU (torch).
 
-Resolved once, when a command starts, so that `--device cuda` on a machine without one fails
-at once with the reason, not at the first frame. torch is an optional extra (`kbbatch[torch]`).
+`--device cuda` is checked when a command starts, so that on a machine without a GPU it fails
+at once with the reason, not at the first frame; `auto` is resolved by the process that renders
+(a daemon worker, a cluster node), once. torch is an optional extra (`kbbatch[torch]`).
 """
 
 from __future__ import annotations
