@@ -17,6 +17,7 @@ from pathlib import Path
 from kbbatch.depth import DepthError
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.manifest import Manifest, ManifestEntry
+from kbbatch.models import providers_used
 from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
@@ -67,6 +68,9 @@ class RunReport:
     results: list[ClipResult]
     notes: list[str] = field(default_factory=list)  # what was passed over, and why
     stopped_by: str | None = None  # the signal that ended the run early
+    device: str = "cpu"  # the --device setting; each clip says where it was rendered
+    onnx_providers: dict[str, str] = field(default_factory=dict)
+    """Each ONNX model this run used, and the onnxruntime provider its session ran on."""
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -75,7 +79,8 @@ class RunReport:
     def to_json(self) -> str:
         return json.dumps(
             {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,
-             "stopped_by": self.stopped_by, "notes": self.notes,
+             "stopped_by": self.stopped_by, "notes": self.notes, "device": self.device,
+             "onnx_providers": self.onnx_providers,
              "clips": [asdict(r) for r in self.results]}, indent=2,
         )
 
@@ -204,7 +209,7 @@ def run_folder(
                                f"interrupted by {stop.get('by', 'an error')}")
         journal.close()
         report = RunReport(str(folder), str(output_folder), preset.name, results, notes,
-                           stop.get("by"))
+                           stop.get("by"), options.device, providers_used())
         try:
             with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
                 temp_path.write_text(report.to_json(), encoding="utf-8")
