@@ -105,6 +105,21 @@ def _remainder(colour: np.ndarray, known: np.ndarray, share: np.ndarray) -> np.n
     return (colour - share * known) / np.maximum(1 - share, 1 / 255)
 
 
+def _into_gamut(colour: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """colour moved along the line to anchor (a clean colour, in gamut) until it is in 0..255.
+
+    Clipping each channel on its own changes the hue of a colour solved from a poor estimate
+    (a dark suit's edge over a bright wall turns cyan) and that rim travels with the layer;
+    moving towards the layer's own clean colour keeps the hue and stays close to it.
+    """
+    offset = colour - anchor
+    room = np.where(offset > 0, 255.0 - anchor, anchor)  # distance to the gamut per channel
+    needed = np.abs(offset)
+    fraction = np.min(np.where(needed > room, room / np.maximum(needed, 1e-6), 1.0), axis=-1,
+                      keepdims=True)
+    return anchor + offset * fraction
+
+
 def _clipped(colour: np.ndarray) -> np.ndarray:
     return np.any((colour < 0) | (colour > 255), axis=-1, keepdims=True)
 
@@ -211,7 +226,8 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     first = np.where(_clipped(second) & ~mostly_front,
                      _remainder(pixel, np.round(np.clip(second, 0, 255)), 1 - share), first)
     first = np.round(np.clip(first, 0, 255))
-    second = np.round(np.clip(_remainder(pixel, first, share), 0, 255))
+    second_clean = np.clip(np.where(mostly_front, front_here, back_here), 0, 255)
+    second = np.round(np.clip(_into_gamut(_remainder(pixel, first, share), second_clean), 0, 255))
     front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
     back_band = np.where(a <= 0.0, pixel, np.where(mostly_front, first, second))
 
