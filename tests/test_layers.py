@@ -63,3 +63,27 @@ def test_an_out_of_gamut_layer_colour_keeps_its_hue():
     assert np.allclose(np.cross(moved - anchor, direction), 0.0)
     inside = np.array([[10.0, 200.0, 255.0]])
     assert np.array_equal(_into_gamut(inside, anchor), inside)
+
+
+def test_a_lit_rim_moves_with_the_object_and_does_not_stay_behind():
+    """A backlit object has a lighter, bluer rim than its inside; un-mixed against the inside's
+    colour, the rim once went to the background layer and stayed behind as a cyan line where
+    a shoulder had been (a real portrait). The background layer keeps its own colour."""
+    height, width = 120, 160
+    rng = np.random.default_rng(5)
+    wall = np.array([230.0, 220.0, 190.0])
+    background = wall + rng.normal(0, 2, (height, width, 3))
+    inside = np.zeros((height, width), np.float32)
+    inside[30:90, 40:100] = 1.0
+    rim = inside - cv2.erode(inside, np.ones((5, 5), np.uint8))
+    suit = np.where(rim[..., None] > 0, [70.0, 150.0, 220.0], [25.0, 25.0, 50.0])
+    alpha = cv2.GaussianBlur(inside, (0, 0), 1.0)
+    object_colour = cv2.GaussianBlur(suit.astype(np.float32), (0, 0), 0.7)
+    photo = np.clip(background * (1 - alpha[..., None]) + object_colour * alpha[..., None], 0,
+                    255).astype(np.uint8)
+    disparity = np.where(alpha >= 0.5, 1.0, 0.25).astype(np.float32)
+    layers = split_layers(photo, 1.0 / disparity)
+    far = layers.far & (alpha > 0.05)  # far-layer pixels the object overlapped
+    assert far.sum() > 100
+    deviation = np.abs(layers.background[far].astype(np.float32) - wall).max(axis=-1)
+    assert np.percentile(deviation, 99) < 30
