@@ -52,6 +52,8 @@ def edge_window_origin(disparity: np.ndarray, end: Crop, preset: Preset) -> tupl
     # only windows wholly inside the frame
     half_w, half_h = CROP_WIDTH_PX // 2, CROP_HEIGHT_PX // 2
     inner = summed[half_h:preset.height_px - half_h + 1, half_w:preset.width_px - half_w + 1]
+    if inner.max() <= 0:  # no depth discontinuity in view: the centre
+        return (preset.width_px - CROP_WIDTH_PX) // 2, (preset.height_px - CROP_HEIGHT_PX) // 2
     y, x = np.unravel_index(int(np.argmax(inner)), inner.shape)
     return int(x), int(y)
 
