@@ -45,6 +45,13 @@ EDGE_BLUR_MAX_PX = 2.5
 """The widest blur (Gaussian sigma, working px) an object's edge is assumed to have: its alpha
 beyond the depth edge stays below that blur's tail."""
 
+BACKGROUND_SPREAD = 2.0
+"""A band pixel's background colour may differ from the clean estimate by this many standard
+deviations of the clean background's own colours (its texture); the rest is the object's."""
+
+BACKGROUND_SLACK = 8.0
+"""... plus this many 8-bit levels (noise, and the estimate's own error on flat backgrounds)."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -105,8 +112,19 @@ def _remainder(colour: np.ndarray, known: np.ndarray, share: np.ndarray) -> np.n
     return (colour - share * known) / np.maximum(1 - share, 1 / 255)
 
 
-def _clipped(colour: np.ndarray) -> np.ndarray:
-    return np.any((colour < 0) | (colour > 255), axis=-1, keepdims=True)
+def _into_gamut(colour: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """colour moved along the line to anchor (a clean colour, in gamut) until it is in 0..255.
+
+    Clipping each channel on its own changes the hue of a colour solved from a poor estimate
+    (a dark suit's edge over a bright wall turns cyan) and that rim travels with the layer;
+    moving towards the layer's own clean colour keeps the hue and stays close to it.
+    """
+    offset = colour - anchor
+    room = np.where(offset > 0, 255.0 - anchor, anchor)  # distance to the gamut per channel
+    needed = np.abs(offset)
+    fraction = np.min(np.where(needed > room, room / np.maximum(needed, 1e-6), 1.0), axis=-1,
+                      keepdims=True)
+    return anchor + offset * fraction
 
 
 def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
@@ -161,6 +179,9 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     box = max(1, round(2 * band_px * scale))
     back_mean, back_weight = _normalised_blur(
         colour, cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR), box)
+    back_square, _ = _normalised_blur(
+        colour * colour, cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR), box)
+    back_spread = np.sqrt(np.maximum(back_square - back_mean * back_mean, 0.0)).mean(axis=-1)
     front_mean, front_weight = _normalised_blur(
         colour, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR), box)
     has_background = back_weight > 1e-3
@@ -206,12 +227,24 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     first = np.round(np.clip(np.where(mostly_front, back_here, front_here), 0, 255))
     share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
     second = _remainder(pixel, first, share)
-    # Where the background (as the remainder) had to be clipped, the object takes up the
-    # difference; never the other way, which would hand the object's colour to the background.
-    first = np.where(_clipped(second) & ~mostly_front,
-                     _remainder(pixel, np.round(np.clip(second, 0, 255)), 1 - share), first)
+    # Where the background (as the remainder) strays from its clean estimate further than the
+    # background's own texture does, or out of gamut, the object takes up the difference: it
+    # is the object's (a rim light, a lighter edge) and must not stay behind as a ghost. Never
+    # the other way, which would hand the object's colour to the background. What the object
+    # cannot take (out of its gamut) is dropped: the start view then differs from the photo
+    # there, which is less visible than a ghost.
+    back_clean = np.clip(back_here, 0, 255)
+    tolerance = BACKGROUND_SPREAD * back_spread[band][:, None] + BACKGROUND_SLACK
+    kept = np.clip(back_clean + np.clip(second - back_clean, -tolerance, tolerance), 0, 255)
+    strays = np.any(np.abs(kept - second) > 0.5, axis=-1, keepdims=True) & ~mostly_front
+    first = np.where(strays, _into_gamut(_remainder(pixel, np.round(kept), 1 - share),
+                                         np.clip(front_here, 0, 255)), first)
     first = np.round(np.clip(first, 0, 255))
-    second = np.round(np.clip(_remainder(pixel, first, share), 0, 255))
+    second = _remainder(pixel, first, share)
+    second = np.where(mostly_front, _into_gamut(second, np.clip(front_here, 0, 255)),
+                      np.clip(back_clean + np.clip(second - back_clean, -tolerance, tolerance),
+                              0, 255))
+    second = np.round(np.clip(second, 0, 255))
     front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
     back_band = np.where(a <= 0.0, pixel, np.where(mostly_front, first, second))
 

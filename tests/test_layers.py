@@ -15,7 +15,8 @@ PHOTO = SHARED / "photos" / "33_landscape_sign_in_field.jpg"
 def test_cutout_colour_is_not_left_behind_at_the_end_view(tmp_path):
     scene = build_scene(PHOTO, tmp_path)
     preset = with_overrides(load_preset("preview"), width_px=960, height_px=540)
-    (start_ghost, start_tear, _), (end_ghost, end_tear, _) = measure(scene, preset, (0.0, 1.0))
+    (start_ghost, start_tear, _, _), (end_ghost, end_tear, _, end_excess) = measure(
+        scene, preset, (0.0, 1.0))
     # The hard z-buffered cloud of before left 250 magenta pixels per 1000 of the silhouette
     # beside it at the end view (and 28 at the start); the soft layers leave about a quarter.
     assert start_ghost < 10
@@ -45,3 +46,44 @@ def test_the_matte_is_soft_only_at_the_edge_and_colours_are_unmixed():
         layers.background[..., 1]
     assert far.sum() > 100
     assert (level[far] > 40).mean() < 0.02
+
+
+def test_an_out_of_gamut_layer_colour_keeps_its_hue():
+    """A colour solved from a poor clean estimate can fall outside 0..255; clipping each
+    channel turned a dark suit's rim cyan on a real photo. It is moved towards the layer's own
+    clean colour instead, along the line between them."""
+    from kbbatch.layers import _into_gamut
+
+    anchor = np.array([[20.0, 30.0, 50.0]])
+    solved = np.array([[-60.0, 40.0, 120.0]])
+    moved = _into_gamut(solved, anchor)
+    assert np.all(moved >= 0) and np.all(moved <= 255)
+    assert np.allclose(moved, [[0.0, 32.5, 67.5]])  # a quarter of the way, R meets 0
+    direction = solved - anchor
+    assert np.allclose(np.cross(moved - anchor, direction), 0.0)
+    inside = np.array([[10.0, 200.0, 255.0]])
+    assert np.array_equal(_into_gamut(inside, anchor), inside)
+
+
+def test_a_lit_rim_moves_with_the_object_and_does_not_stay_behind():
+    """A backlit object has a lighter, bluer rim than its inside; un-mixed against the inside's
+    colour, the rim once went to the background layer and stayed behind as a cyan line where
+    a shoulder had been (a real portrait). The background layer keeps its own colour."""
+    height, width = 120, 160
+    rng = np.random.default_rng(5)
+    wall = np.array([230.0, 220.0, 190.0])
+    background = wall + rng.normal(0, 2, (height, width, 3))
+    inside = np.zeros((height, width), np.float32)
+    inside[30:90, 40:100] = 1.0
+    rim = inside - cv2.erode(inside, np.ones((5, 5), np.uint8))
+    suit = np.where(rim[..., None] > 0, [70.0, 150.0, 220.0], [25.0, 25.0, 50.0])
+    alpha = cv2.GaussianBlur(inside, (0, 0), 1.0)
+    object_colour = cv2.GaussianBlur(suit.astype(np.float32), (0, 0), 0.7)
+    photo = np.clip(background * (1 - alpha[..., None]) + object_colour * alpha[..., None], 0,
+                    255).astype(np.uint8)
+    disparity = np.where(alpha >= 0.5, 1.0, 0.25).astype(np.float32)
+    layers = split_layers(photo, 1.0 / disparity)
+    far = layers.far & (alpha > 0.05)  # far-layer pixels the object overlapped
+    assert far.sum() > 100
+    deviation = np.abs(layers.background[far].astype(np.float32) - wall).max(axis=-1)
+    assert np.percentile(deviation, 99) < 30
