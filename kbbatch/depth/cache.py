@@ -12,6 +12,7 @@ import contextlib
 import logging
 import os
 import re
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -46,8 +47,8 @@ def load(key: str) -> DepthResult | None:
         with np.load(path, allow_pickle=False) as data:
             result = DepthResult(data["disparity"], str(data["backend"]),
                                  str(data["source"]))
-    except (OSError, ValueError, KeyError):
-        return None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None  # absent, or damaged (say truncated by a copy): computed again
     with contextlib.suppress(OSError):  # evicted meanwhile, or a read-only cache
         os.utime(path)  # used now: the last to be evicted
     return result
