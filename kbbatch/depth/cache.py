@@ -26,8 +26,8 @@ CACHE_ENV = "KBBATCH_CACHE"
 CACHE_MAX_ENV = "KBBATCH_CACHE_MAX_MB"
 CACHE_MAX_MB_DEFAULT = 2048
 """The folder's bound in MB unless $KBBATCH_CACHE_MAX_MB says otherwise. An entry is float32
-disparity at the working size (long side 1024 px): 3.0 MB for a 3:2 photo, at most 4 MiB, so
-the default holds about 700 photos."""
+disparity at the working size (long side 1024 px): 3.0 MB for a 4579x3271 photo, at most
+4.2 MB, so the default holds about 700 photos."""
 
 ENTRY_PATTERN = re.compile(r"[0-9a-f]{32}\.npz")
 """A finished entry's file name (temporary files of a write in progress never match)."""
