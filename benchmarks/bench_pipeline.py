@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from kbbatch.batch import ClipOptions, frame_at, make_clip, ordered_map, prepare_scene
-from kbbatch.encode import ffmpeg_exe
+from kbbatch.encode import ffmpeg_exe, quality_options
 from kbbatch.images import read_image
 from kbbatch.presets import Preset, load_preset
 
@@ -42,11 +42,10 @@ def zoompan_seconds(photo: Path, preset: Preset, output: Path) -> float:
     command = [
         ffmpeg_exe(), "-loglevel", "error", "-y", "-loop", "1", "-framerate", str(preset.fps),
         "-i", str(photo), "-vf", filters, "-frames:v", str(preset.frames_total),
-        "-c:v", preset.codec, "-crf", str(preset.crf), "-pix_fmt", preset.pix_fmt,
-        "-movflags", "+faststart",
+        "-c:v", preset.codec, "-pix_fmt", preset.pix_fmt, "-movflags", "+faststart",
     ]
-    if preset.encoder_preset:
-        command += ["-preset", preset.encoder_preset]
+    for name, value in quality_options(preset).items():
+        command += [f"-{name}", str(value)]
     started = time.perf_counter()
     subprocess.run([*command, str(output)], check=True)
     return time.perf_counter() - started

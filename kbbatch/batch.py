@@ -26,14 +26,23 @@ import numpy as np
 from tqdm import tqdm
 
 from kbbatch import paper
-from kbbatch.camera import Plan, SceneGeometry, depth_from_disparity, nearest_depth, output_view
+from kbbatch.camera import (
+    Plan,
+    SceneGeometry,
+    View,
+    depth_from_disparity,
+    nearest_depth,
+    output_view,
+)
 from kbbatch.camera import working_size as compute_working_size
 from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
 from kbbatch.depth import cache as depth_cache
+from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
+from kbbatch.models import providers_used
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
 from kbbatch.render import PointCloud, render_frame
@@ -88,6 +97,9 @@ class ClipOptions:
     threads: int = max(1, os.cpu_count() or 1)
     cache_depth: bool = True
     save_depth: bool = False
+    device: str = "cpu"
+    """Where frames are rendered: a --device value (auto, cpu or cuda), resolved by the
+    process that renders, or kbbatch.device.TORCH_CPU."""
 
 
 @dataclass
@@ -104,6 +116,7 @@ class ClipResult:
     detail: str | None = None  # traceback of an unexpected failure
     note: str | None = None  # e.g. why the clip is named by content
     risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
+    device: str | None = None  # where the frames were rendered
 
 
 @dataclass(frozen=True)
@@ -222,11 +235,20 @@ def cached_disparity(working: np.ndarray, photo_path: Path | None, options: Clip
     return result
 
 
+def frame_view(prepared: PreparedScene, preset: Preset, t: float) -> View:
+    """The camera of the output frame at time t in [0, 1]."""
+    return output_view(prepared.plan, prepared.scene, t, preset.width_px, preset.height_px)
+
+
+def disparity_scale(prepared: PreparedScene) -> float:
+    """Inverse depth to working disparity pixels, for the renderer's tolerances."""
+    return prepared.scene.focal_px * paper.DISPARITY_MAX_PX
+
+
 def frame_at(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
     """One output frame at time t in [0, 1], every pixel filled."""
-    view = output_view(prepared.plan, prepared.scene, t, preset.width_px, preset.height_px)
-    disparity_scale = prepared.scene.focal_px * paper.DISPARITY_MAX_PX
-    return render_frame(prepared.cloud, view, disparity_scale)
+    return render_frame(prepared.cloud, frame_view(prepared, preset, t),
+                        disparity_scale(prepared))
 
 
 def frame_times(preset: Preset) -> list[float]:
@@ -234,13 +256,21 @@ def frame_times(preset: Preset) -> list[float]:
     return [i / (count - 1) for i in range(count)]
 
 
+GPU_BATCHES_AHEAD = 2
+"""Launches of frames a GPU may render ahead of the encoder (bounded memory)."""
+
+
 def render_clip_frames(
     prepared: PreparedScene,
     preset: Preset,
     threads: int,
     progress: Callable[[int], None] | None = None,
+    device: str = "cpu",
 ) -> Iterator[np.ndarray]:
-    """The palindromic frame sequence; each time step is rendered once, in parallel threads."""
+    """The palindromic frame sequence; each time step is rendered once, on the CPU in
+    parallel threads, or on a GPU in launches of several frames while the encoder takes the
+    previous ones. device: as ClipOptions.device."""
+    device = frames_device(device)
     times = frame_times(preset)
     frame_bytes = preset.width_px * preset.height_px * 3
     shape = (len(times), preset.height_px, preset.width_px, 3)
@@ -252,7 +282,17 @@ def render_clip_frames(
                 tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-")
             )
             store = np.lib.format.open_memmap(Path(scratch) / "frames.npy", "w+", np.uint8, shape)
-        rendered = ordered_map(lambda t: frame_at(prepared, preset, t), times, threads)
+        if device == "cpu":
+            rendered = ordered_map(lambda t: frame_at(prepared, preset, t), times, threads)
+        else:
+            from kbbatch.device import torch_device
+            from kbbatch.render_torch import render_batches
+
+            views = [frame_view(prepared, preset, t) for t in times]
+            batches = render_batches(prepared.cloud, views, disparity_scale(prepared),
+                                     torch_device(device))
+            rendered = (frame for batch in prefetched(batches, GPU_BATCHES_AHEAD)
+                        for frame in batch)
         for index, frame in enumerate(rendered):
             store[index] = frame
             if progress:
@@ -339,6 +379,50 @@ def ordered_map(function: Callable, items: list, threads: int) -> Iterator:
             yield pending.popleft().result()
 
 
+def prefetched(items: Iterator, ahead: int) -> Iterator:
+    """The items of an iterator, produced by a background thread at most `ahead` in advance
+    (a bounded queue), so that producing and consuming overlap. Its errors are raised here;
+    closing this generator stops the producer."""
+    import queue
+    import threading
+
+    buffer: queue.Queue = queue.Queue(maxsize=ahead)
+    stop = threading.Event()
+    finished = object()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        buffer.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            buffer.put((finished, None))
+        except BaseException as error:  # handed to the consumer
+            buffer.put((finished, error))
+
+    producer = threading.Thread(target=produce, name="kbbatch-prefetch", daemon=True)
+    producer.start()
+    try:
+        while True:
+            item, error = buffer.get()
+            if error is not None:
+                raise error
+            if item is finished:
+                return
+            yield item
+    finally:
+        stop.set()
+        while producer.is_alive():
+            with contextlib.suppress(queue.Empty):
+                buffer.get(timeout=0.1)
+        producer.join()
+
+
 def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
     from kbbatch.images import write_image
@@ -418,15 +502,18 @@ def make_clip(
             save_depth_images(output, prepared.disparity)
         result.plan = plan_summary(prepared.plan)
         clock = time.perf_counter()
+        result.device = frames_device(options.device)
         with progress_bar(total=preset.frames_forward, desc=f"  frames {source.name}",
                           unit="frame", leave=False, disable=not show_progress) as bar:
-            frames = render_clip_frames(prepared, preset, options.threads, bar.update)
+            frames = render_clip_frames(prepared, preset, options.threads, bar.update,
+                                        result.device)
             with atomic_output(output, CLIP_SUFFIX) as temp_path:
                 result.frames = encode_frames(temp_path, frames, preset)
         timings["frames+encode"] = time.perf_counter() - clock
         result.output = str(output)
         result.status = "done"
-    except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
+    except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
+            DeviceError) as error:
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
         result.error = f"{source}: {type(error).__name__}: {error}"
@@ -444,6 +531,9 @@ class RunReport:
     results: list[ClipResult]
     notes: list[str] = field(default_factory=list)  # what was passed over, and why
     stopped_by: str | None = None  # the signal that ended the run early
+    device: str = "cpu"  # the --device setting; each clip says where it was rendered
+    onnx_providers: dict[str, str] = field(default_factory=dict)
+    """Each ONNX model this run used, and the onnxruntime provider its session ran on."""
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -452,7 +542,8 @@ class RunReport:
     def to_json(self) -> str:
         return json.dumps(
             {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,
-             "stopped_by": self.stopped_by, "notes": self.notes,
+             "stopped_by": self.stopped_by, "notes": self.notes, "device": self.device,
+             "onnx_providers": self.onnx_providers,
              "clips": [asdict(r) for r in self.results]}, indent=2,
         )
 
@@ -493,8 +584,9 @@ def remove_partial_clips(folder: Path) -> list[Path]:
 def clip_fingerprint(source: Path, content: str, preset: Preset, options: ClipOptions,
                      entry: ManifestEntry | None) -> str:
     """The digest of every input of a clip (kbbatch.fingerprint): photo, depth file, models,
-    settings (threads excluded: output does not depend on them) and the stages' code. Raises
-    OSError when a depth file named for the photo cannot be read."""
+    settings and the stages' code. Threads and device are left out: the frames do not depend
+    on them (the GPU renderer's are within 50 dB PSNR of the CPU's). Raises OSError when a
+    depth file named for the photo cannot be read."""
     from kbbatch.fingerprint import clip_inputs
 
     settings = (asdict(preset), options.planner, entry.data if entry else None)
@@ -603,7 +695,7 @@ def run_folder(
                                f"interrupted by {stop.get('by', 'an error')}")
         journal.close()
         report = RunReport(str(folder), str(output_folder), preset.name, results, notes,
-                           stop.get("by"))
+                           stop.get("by"), options.device, providers_used())
         try:
             with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
                 temp_path.write_text(report.to_json(), encoding="utf-8")

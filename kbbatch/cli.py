@@ -22,6 +22,7 @@ from kbbatch.batch import (
     run_folder,
 )
 from kbbatch.depth import DepthOptions
+from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.planners import PLANNER_NAMES
@@ -93,6 +94,11 @@ scene_options = _shared(
 manifest_option = click.option(
     "--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
     help="JSON manifest of per-image crops and overrides.")
+device_option = click.option(
+    "--device", type=click.Choice(DEVICE_NAMES), default="auto", show_default=True,
+    envvar=DEVICE_ENV, show_envvar=True,
+    help="Where frames are rendered: auto (a CUDA GPU when torch sees one, else the CPU), "
+    "cpu or cuda.")
 save_depth_option = click.option(
     "--save-depth", is_flag=True,
     help="Also write a 16-bit disparity PNG and a coloured preview per clip.")
@@ -118,6 +124,14 @@ def _clip_options(options: dict, **more) -> ClipOptions:
     depth = DepthOptions(backend=options.pop("depth_backend"), model=options.pop("depth_model"),
                          adjust=not options.pop("no_adjust"),
                          refine=not options.pop("no_refine"))
+    if "device" in options:
+        device = options.pop("device")
+        if device == "cuda":  # fail before anything is written; auto resolves where it renders
+            try:
+                resolve_device(device)
+            except DeviceError as error:
+                raise click.BadParameter(str(error), param_hint="--device") from error
+        more["device"] = device
     return ClipOptions(planner=options.pop("planner"), depth=depth, **more)
 
 
@@ -127,6 +141,7 @@ def _clip_options(options: dict, **more) -> ClipOptions:
               help="Output folder (default: FOLDER/kenburns).")
 @preset_options
 @scene_options
+@device_option
 @manifest_option
 @save_depth_option
 @click.option("--threads", type=int, default=ClipOptions().threads, show_default=True,
@@ -316,6 +331,7 @@ def models_pull(name: str, sha256: str | None) -> None:
               help="Folder the clips are written to (the job journal lives there too).")
 @preset_options
 @scene_options
+@device_option
 @manifest_option
 @save_depth_option
 @click.option("--jobs", type=click.IntRange(min=1), default=None,

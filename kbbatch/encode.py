@@ -32,8 +32,13 @@ class EncoderError(EncodeError):
         self.field = field
 
 
-TRIAL_SIZE_PX = 64
-"""Side of the two black frames a preset's encoder settings are tried on when it loads."""
+TRIAL_SIZE_PX = 256
+"""Side of the two black frames a preset's encoder settings are tried on when it loads (NVENC
+refuses frames narrower than about 145 px)."""
+
+NVENC_SUFFIX = "_nvenc"
+"""NVIDIA's hardware encoders (h264_nvenc, hevc_nvenc, av1_nvenc): they need an NVIDIA GPU
+and driver, and take a constant-quality level (-cq) where software encoders take -crf."""
 
 
 @functools.cache
@@ -78,22 +83,50 @@ def _check_encoder(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> N
     if formats and pix_fmt not in formats:
         raise EncoderError("pix_fmt", f"{codec} cannot write {pix_fmt!r}; it offers "
                                       f"{', '.join(sorted(formats))}")
+    refusal = encoder_refusal(codec, pix_fmt, encoder_preset, crf)
+    if refusal is None:
+        return
+    # An encoder that fails without the speed preset too (no GPU for NVENC) is the culprit.
+    if encoder_preset and encoder_refusal(codec, pix_fmt, "", crf) is None:
+        field, value = "encoder_preset", encoder_preset
+    else:
+        field, value = "codec", codec
+    if codec.endswith(NVENC_SUFFIX):
+        refusal += (f" ({codec} is NVIDIA's hardware encoder: it needs an NVIDIA GPU and its "
+                    "driver; use libx264 or libx265 without one)")
+    raise EncoderError(field, f"ffmpeg refuses {codec} with {field} {value!r}: {refusal}")
+
+
+def encoder_refusal(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> str | None:
+    """Why ffmpeg fails to encode two tiny frames with these settings (None: it does not)."""
     trial = Preset("trial", "", TRIAL_SIZE_PX, TRIAL_SIZE_PX, 25.0, 0.08, "linear", 1.0, "in",
                    0.0, codec, crf, pix_fmt, encoder_preset)
     command = encoder_command(Path(os.devnull), trial, container="null")
     frames = np.zeros((2, TRIAL_SIZE_PX, TRIAL_SIZE_PX, 3), np.uint8)
     result = subprocess.run(command, input=frames.tobytes(), capture_output=True)
-    if result.returncode != 0:
-        reason = " ".join(result.stderr.decode(errors="replace").strip().splitlines()[:2])
-        field = "encoder_preset" if encoder_preset else "codec"
-        raise EncoderError(field, f"ffmpeg refuses {codec} with {field} "
-                                  f"{getattr(trial, field)!r}: {reason}")
+    if result.returncode == 0:
+        return None
+    return " ".join(result.stderr.decode(errors="replace").strip().splitlines()[:2])
 
 
 def palindrome_order(frames_forward: int) -> list[int]:
     """Indices of a forward-then-back clip: 0..N-1, then N-2..1 (the ends are not repeated)."""
     forward = list(range(frames_forward))
     return forward + forward[-2:0:-1]
+
+
+def quality_options(preset: Preset) -> dict[str, object]:
+    """ffmpeg output options for the preset's quality and speed, in its encoder's terms."""
+    options: dict[str, object] = {}
+    if preset.codec.endswith(NVENC_SUFFIX):  # constant quality, as crf is for x264
+        options.update({"rc": "vbr", "cq": preset.crf, "b:v": 0})
+    else:
+        options["crf"] = preset.crf
+    if preset.codec == "libvpx-vp9":
+        options["b:v"] = 0  # constant quality with crf
+    if preset.encoder_preset:
+        options["preset"] = preset.encoder_preset
+    return options
 
 
 def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[str]:
@@ -105,16 +138,12 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
     options: dict[str, object] = {
         "vcodec": preset.codec,
         "pix_fmt": preset.pix_fmt,
-        "crf": preset.crf,
         "r": preset.fps,
         "format": container,
+        **quality_options(preset),
     }
-    if preset.encoder_preset:
-        options["preset"] = preset.encoder_preset
     if container == "mp4":
         options["movflags"] = "+faststart"
-    if preset.codec == "libvpx-vp9":
-        options["b:v"] = 0  # constant quality with crf
     out = ffmpeg.output(stream, str(path), **options).global_args("-loglevel", "error", "-nostdin")
     return ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
 

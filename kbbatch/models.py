@@ -190,6 +190,15 @@ def execution_provider() -> str:
     return provider
 
 
+_providers_used: dict[str, str] = {}
+
+
+def providers_used() -> dict[str, str]:
+    """The model files this process ran, and the provider each session really runs on
+    (onnxruntime falls back to the CPU when CUDA cannot start)."""
+    return dict(_providers_used)
+
+
 @functools.cache
 def session(path: Path):
     """An onnxruntime session for a model file, created once per process, on the chosen
@@ -206,7 +215,8 @@ def session(path: Path):
     providers = [provider] if provider == PROVIDER_NAMES["cpu"] else [provider,
                                                                        PROVIDER_NAMES["cpu"]]
     created = onnxruntime.InferenceSession(str(path), options, providers=providers)
-    log.info("%s on %s, %d thread(s)", path.name, created.get_providers()[0],
+    _providers_used[path.name] = created.get_providers()[0]
+    log.info("%s on %s, %d thread(s)", path.name, _providers_used[path.name],
              options.intra_op_num_threads)
     return created
 

@@ -213,8 +213,9 @@ class Daemon:
             self.events.put((path, False))
         threads = max(1, (os.cpu_count() or 1) // s.jobs)
         options = replace(s.options, threads=threads)
-        log.info("watching %s -> %s (preset %s, %d job(s), %s)", s.inbox, s.outbox,
-                 s.preset.name, s.jobs, "polling" if s.poll else "inotify")
+        log.info("watching %s -> %s (preset %s, %d job(s), %s, frames on %s)", s.inbox,
+                 s.outbox, s.preset.name, s.jobs, "polling" if s.poll else "inotify",
+                 options.device)
         self.pool = self.new_pool()
         try:
             while not self.stopping.is_set() or self.in_flight:

@@ -1,5 +1,7 @@
 import os
 import subprocess
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -124,3 +126,17 @@ def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, 
                    ClipOptions(threads=1), show_progress=False)
     assert not stale.exists(), "a dead process's frame store must be removed"
     assert live.exists(), "a running process's frame store must be kept"
+
+
+def test_nvenc_takes_a_constant_quality_where_x264_takes_crf():
+    from kbbatch.encode import encoder_command
+
+    slideshow = load_preset("slideshow")
+    software = encoder_command(Path("clip.mp4"), slideshow)
+    assert software[software.index("-crf") + 1] == str(slideshow.crf)
+    nvenc = encoder_command(Path("clip.mp4"), replace(slideshow, codec="h264_nvenc",
+                                                      encoder_preset="p5"))
+    assert "-crf" not in nvenc
+    assert nvenc[nvenc.index("-cq") + 1] == str(slideshow.crf)
+    assert nvenc[nvenc.index("-rc") + 1] == "vbr"
+    assert nvenc[nvenc.index("-preset") + 1] == "p5"

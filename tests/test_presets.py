@@ -113,3 +113,34 @@ def test_cli_blames_the_option_that_is_wrong(tmp_path, arguments, option):
     assert result.exit_code == 2
     assert f"Invalid value for {option}:" in result.output
     assert "Traceback" not in result.output
+
+
+def test_a_preset_naming_an_encoder_this_ffmpeg_lacks_fails_at_load(tmp_path):
+    from kbbatch.encode import _encoders
+
+    absent = [c for c in ("h264_videotoolbox", "hevc_videotoolbox", "h264_mf", "h264_omx")
+              if c not in _encoders()]
+    if not absent:
+        pytest.skip("this ffmpeg has every platform's hardware encoder")
+    path = write(tmp_path / "mac.toml", f'base = "slideshow"\ncodec = "{absent[0]}"\n')
+    with pytest.raises(PresetError, match=rf"mac.toml: setting 'codec': ffmpeg .* has no video "
+                                          rf"encoder '{absent[0]}'"):
+        load_preset(path)
+
+
+def test_nvenc_without_an_nvidia_gpu_blames_the_codec_at_load(tmp_path):
+    from kbbatch.encode import _encoders, encoder_refusal
+
+    path = write(tmp_path / "nvenc.toml",
+                 'base = "slideshow"\ncodec = "h264_nvenc"\nencoder_preset = "p5"\n')
+    if "h264_nvenc" not in _encoders():
+        with pytest.raises(PresetError, match="has no video encoder 'h264_nvenc'"):
+            load_preset(path)
+        return
+    if encoder_refusal("h264_nvenc", "yuv420p", "p5", 18) is None:
+        assert load_preset(path).codec == "h264_nvenc"  # a machine with a working NVENC
+        return
+    with pytest.raises(PresetError, match=r"nvenc.toml: setting 'codec': ffmpeg refuses "
+                                          r"h264_nvenc with codec 'h264_nvenc': .*needs an "
+                                          r"NVIDIA GPU and its driver"):
+        load_preset(path)
