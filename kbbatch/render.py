@@ -449,7 +449,9 @@ def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_in
     wa = w * a
     surface = front[yy, xx]
     if surface < inv_z - soft_inv_z:
-        if surface > 0:
+        if surface > 0 and clear[yy, xx] > 0:
+            _flatten_into_back(cell, clear, back, back_cell, yy, xx, surface)
+        elif surface > 0:
             for c in range(4):
                 back_cell[yy, xx, c] = cell[yy, xx, c]
             back[yy, xx] = surface
@@ -468,6 +470,26 @@ def _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_z, soft_in
         clear[yy, xx] += w - wa
     elif clear[yy, xx] > 0:  # behind a soft front: z-buffered into the back surface
         _soft_z(back, back_cell, yy, xx, wa, inv_z, soft_inv_z, r, g, b)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _flatten_into_back(cell, clear, back, back_cell, yy, xx, surface):
+    """A soft front about to be covered by a nearer soft point becomes the back: composited
+    over the surface already behind it (or, over nothing, in its own un-premultiplied colour),
+    so the opaque surface behind two soft edges is not dropped (it showed as dark specks)."""
+    weight = cell[yy, xx, _WEIGHT]
+    alpha_sum = max(weight - clear[yy, xx], np.float32(MIN_SPLAT_WEIGHT * MIN_SPLAT_WEIGHT))
+    if back[yy, xx] > 0:
+        see_through = clear[yy, xx] / (weight * back_cell[yy, xx, _WEIGHT])
+        for c in range(3):
+            back_cell[yy, xx, c] = cell[yy, xx, c] / weight + back_cell[yy, xx, c] * see_through
+        if alpha_sum >= np.float32(0.5) * weight:
+            back[yy, xx] = surface
+    else:
+        for c in range(3):
+            back_cell[yy, xx, c] = cell[yy, xx, c] / alpha_sum
+        back[yy, xx] = surface
+    back_cell[yy, xx, _WEIGHT] = 1.0
 
 
 @numba.njit(cache=True, nogil=True)
