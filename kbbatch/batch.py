@@ -32,7 +32,7 @@ from kbbatch.pipeline import (
     ClipOptions,
     ClipResult,
     LocalExecutor,
-    clip_settings,
+    clip_fingerprint,
     progress_bar,
     remove_stale_scratch,
     working_depth,
@@ -225,16 +225,17 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
               ) -> ClipJob | ClipResult:
     """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
     to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
+    from kbbatch.fingerprint import file_sha256
     from kbbatch.images import unreadable_reason
-    from kbbatch.journal import JournalError, content_hash, source_fingerprint
+    from kbbatch.journal import JournalError, source_fingerprint
 
     try:
         fingerprint = source_fingerprint(source)
-        content = content_hash(source)
+        content = file_sha256(source)
+        settings = clip_fingerprint(source, content, preset, options, entry)
     except OSError as error:
         return ClipResult(str(source), None, "failed", 0.0,
-                          error=f"{source}: {unreadable_reason(error)}")
-    settings = clip_settings(preset, options, entry)
+                          error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
         name = journal.clip_name(source, content, preferred, output_folder)
         output = output_folder / name

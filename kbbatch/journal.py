@@ -8,13 +8,10 @@ name is never given to a second, different photo. Jobs are keyed by the photo's 
 
 from __future__ import annotations
 
-import hashlib
-import json
 import sqlite3
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 JOURNAL_NAME = ".kbbatch-journal.sqlite"
 STATES = ("queued", "running", "done", "failed")
@@ -54,21 +51,6 @@ def source_fingerprint(path: Path) -> str:
     """Size and modification time: a changed photo (or clip) is a new one."""
     stat = path.stat()
     return f"{stat.st_size}:{stat.st_mtime_ns}"
-
-
-def content_hash(path: Path) -> str:
-    """sha256 of a file's bytes: which photo this is, wherever it lies and whatever its name."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def settings_fingerprint(*parts: Any) -> str:
-    """A short hash of everything that shapes a clip (preset, options, manifest entry)."""
-    text = json.dumps(parts, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 LOW_SPACE_BYTES = 1 << 20

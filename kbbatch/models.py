@@ -7,7 +7,6 @@ file enters the cache, and a file is kept only when its sha256 matches.
 from __future__ import annotations
 
 import functools
-import hashlib
 import logging
 import os
 from dataclasses import dataclass
@@ -109,21 +108,6 @@ def cached_path(name: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def cache_fingerprint() -> list[tuple[str, int]]:
-    """Which models are in the cache (name and size): depth computed with other models
-    available is different depth, so the depth cache keys on this."""
-    return [(name, path.stat().st_size) for name in sorted(REGISTRY)
-            if (path := cached_path(name)) is not None]
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = None,
          progress: bool = True) -> Path:
     """Download a model into the cache, keeping it only if its sha256 is the expected one.
@@ -149,7 +133,9 @@ def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = No
     except Exception as error:
         raise ModelError(f"{spec.name}: download from {spec.url} failed ({error})") from error
     if expected is None:
-        actual = sha256_of(path)
+        from kbbatch.fingerprint import file_sha256
+
+        actual = file_sha256(path)
         path.unlink()
         raise ModelError(
             f"{spec.name}: no checksum is registered for this file, so it was not kept. Its "

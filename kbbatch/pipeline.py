@@ -39,7 +39,6 @@ from kbbatch.camera import (
 from kbbatch.camera import working_size as compute_working_size
 from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
 from kbbatch.depth import cache as depth_cache
-from kbbatch.depth.file import find_depth_file
 from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, read_image
@@ -205,13 +204,12 @@ def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptio
 def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions
                      ) -> DepthResult:
     """The depth stage, through the on-disk cache when the photo is a file."""
+    from kbbatch.fingerprint import depth_inputs, file_sha256
+
     if photo_path is None or not options.cache_depth:
         return estimate_disparity(working, photo_path, options.depth)
-    depth_file = find_depth_file(photo_path)
-    key = depth_cache.cache_key(
-        depth_cache.file_hash(photo_path), options.depth, working.shape[:2],
-        depth_cache.file_hash(depth_file) if depth_file else None,
-    )
+    key = depth_inputs(photo_path, file_sha256(photo_path), options.depth).digest(
+        working.shape[:2])
     cached = depth_cache.load(key)
     if cached is not None and cached.disparity.shape == working.shape[:2]:
         return cached
@@ -441,9 +439,14 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
     if "planner" in data:  # a registered name: checked when the manifest loaded
         options = replace(options, planner=data["planner"])
-    if entry.depth_file is not None:
-        options = replace(options, depth=replace(options.depth, file=str(entry.depth_file)))
-    return preset, options
+    return preset, replace(options, depth=entry_depth(entry, options.depth))
+
+
+def entry_depth(entry: ManifestEntry | None, depth: DepthOptions) -> DepthOptions:
+    """The depth options for a photo: with the depth file its manifest entry names."""
+    if entry is None or entry.depth_file is None:
+        return depth
+    return replace(depth, file=str(entry.depth_file))
 
 
 def make_clip(
@@ -496,13 +499,16 @@ def make_clip(
     return result
 
 
-def clip_settings(preset: Preset, options: ClipOptions, entry: ManifestEntry | None) -> str:
-    """What shapes a clip besides the photo (threads and device excluded: the frames do not
-    depend on them; the GPU renderer's are within 50 dB PSNR of the CPU's)."""
-    from kbbatch.journal import settings_fingerprint
+def clip_fingerprint(source: Path, content: str, preset: Preset, options: ClipOptions,
+                     entry: ManifestEntry | None) -> str:
+    """The digest of every input of a clip (kbbatch.fingerprint): photo, depth file, models,
+    settings and the stages' code. Threads and device are left out: the frames do not depend
+    on them (the GPU renderer's are within 50 dB PSNR of the CPU's). Raises OSError when a
+    depth file named for the photo cannot be read."""
+    from kbbatch.fingerprint import clip_inputs
 
-    return settings_fingerprint(asdict(preset), options.planner, asdict(options.depth),
-                                entry.data if entry else None)
+    settings = (asdict(preset), options.planner, entry.data if entry else None)
+    return clip_inputs(source, content, entry_depth(entry, options.depth), settings).digest
 
 
 @dataclass(frozen=True)

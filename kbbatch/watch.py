@@ -27,17 +27,23 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from kbbatch import models
+from kbbatch.fingerprint import file_sha256
 from kbbatch.images import atomic_output, is_image_file, scan_folder, unreadable_reason
 from kbbatch.journal import (
     FolderLock,
     Journal,
     JournalError,
-    content_hash,
     source_fingerprint,
 )
 from kbbatch.manifest import Manifest, ManifestEntry
 from kbbatch.outputs import check_writable, output_names, remove_partial_clips
-from kbbatch.pipeline import ClipOptions, ClipResult, clip_settings, make_clip, remove_stale_scratch
+from kbbatch.pipeline import (
+    ClipOptions,
+    ClipResult,
+    clip_fingerprint,
+    make_clip,
+    remove_stale_scratch,
+)
 from kbbatch.presets import Preset
 from kbbatch.ray_executor import RayClipPool, RayExecutor
 
@@ -291,14 +297,14 @@ class JobRunner:
             entry = s.manifest.entry(path.name) if s.manifest else None
             try:
                 fingerprint = source_fingerprint(path)
-                content = content_hash(path)
+                content = file_sha256(path)
+                settings = clip_fingerprint(path, content, s.preset, options, entry)
             except OSError as error:
                 inbox.forget(path)
                 result = ClipResult(str(path), None, "failed", 0.0,
-                                    error=f"{path}: {unreadable_reason(error)}")
+                                    error=f"{error.filename or path}: {unreadable_reason(error)}")
                 self.file_failure(path, result)
                 continue
-            settings = clip_settings(s.preset, options, entry)
             preferred = self.preferred_name(path)
             name = self.journal.clip_name(path, content, preferred, s.outbox)
             output = s.outbox / name

@@ -101,16 +101,6 @@ def test_depth_cache_reuses_and_separates_settings(tmp_path, monkeypatch):
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
 
 
-def test_depth_cache_key_changes_when_models_appear(tmp_path, monkeypatch):
-    from kbbatch.depth import DepthOptions
-
-    monkeypatch.setenv("KBBATCH_MODELS", str(tmp_path))
-    without = depth_cache.cache_key("photo", DepthOptions(), (10, 10), None)
-    (tmp_path / "yolox_nano_coco_416.onnx").write_bytes(b"weights")
-    with_detector = depth_cache.cache_key("photo", DepthOptions(), (10, 10), None)
-    assert without != with_detector, "depth made without a model must not be reused with it"
-
-
 def two_people_at_working_size(monkeypatch, model_file: str) -> np.ndarray:
     """Photo 03 at the working size, with the real models in ../shared selected."""
     import cv2

@@ -1,25 +1,36 @@
 """On-disk cache of final depth maps, so re-runs and the daemon never recompute them.
 
-The key is the photo's content hash with everything that shapes the depth: backend, model,
-options and the working size. Files are written atomically; a damaged entry is recomputed.
+The key is the digest of the depth stage's inputs (kbbatch.fingerprint: photo and depth-file
+bytes, the networks present, the options, the depth code) and the working size. Files are
+written atomically, so a reader sees a whole entry or none; a damaged entry is recomputed. The
+folder is bounded: past the bound the least recently used entries are removed.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
+import contextlib
+import logging
 import os
-from dataclasses import asdict
+import re
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from kbbatch.depth import DepthOptions, DepthResult
+from kbbatch.depth import DepthResult
 from kbbatch.images import atomic_output
 
+log = logging.getLogger(__name__)
+
 CACHE_ENV = "KBBATCH_CACHE"
-CACHE_VERSION = 4
-"""Bump when a change to the depth code changes its output."""
+CACHE_MAX_ENV = "KBBATCH_CACHE_MAX_MB"
+CACHE_MAX_MB_DEFAULT = 2048
+"""The folder's bound in MB unless $KBBATCH_CACHE_MAX_MB says otherwise. An entry is float32
+disparity at the working size (long side 1024 px): 3.0 MB for a 4579x3271 photo, at most
+4.2 MB, so the default holds about 700 photos."""
+
+ENTRY_PATTERN = re.compile(r"[0-9a-f]{32}\.npz")
+"""A finished entry's file name (temporary files of a write in progress never match)."""
 
 
 def cache_dir() -> Path:
@@ -31,27 +42,17 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("kbbatch")) / "depth"
 
 
-def cache_key(photo_bytes_hash: str, options: DepthOptions, size: tuple[int, int],
-              depth_file_hash: str | None) -> str:
-    from kbbatch.models import cache_fingerprint
-
-    settings = {"photo": photo_bytes_hash, "options": asdict(options), "size": size,
-                "depth_file": depth_file_hash, "models": cache_fingerprint(),
-                "version": CACHE_VERSION}
-    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:32]
-
-
-def file_hash(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def load(key: str) -> DepthResult | None:
     path = cache_dir() / f"{key}.npz"
     try:
         with np.load(path, allow_pickle=False) as data:
-            return DepthResult(data["disparity"], str(data["backend"]), str(data["source"]))
-    except (OSError, ValueError, KeyError):
-        return None
+            result = DepthResult(data["disparity"], str(data["backend"]),
+                                 str(data["source"]))
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None  # absent, or damaged (say truncated by a copy): computed again
+    with contextlib.suppress(OSError):  # evicted meanwhile, or a read-only cache
+        os.utime(path)  # used now: the last to be evicted
+    return result
 
 
 def store(key: str, result: DepthResult) -> None:
@@ -61,4 +62,49 @@ def store(key: str, result: DepthResult) -> None:
             np.savez(handle, disparity=result.disparity, backend=result.backend,
                      source=result.source)
     except OSError:
-        pass  # a cache that cannot be written only costs time
+        return  # a cache that cannot be written only costs time
+    evict(cache_max_bytes(), keep=path)
+
+
+def cache_max_bytes() -> int:
+    """The bound on the folder's size, from $KBBATCH_CACHE_MAX_MB or the default."""
+    text = os.environ.get(CACHE_MAX_ENV)
+    if text:
+        try:
+            megabytes = float(text)
+            if megabytes >= 0:
+                return int(megabytes * 2**20)
+        except ValueError:
+            pass
+        log.warning("%s=%r is not a size in MB; using %d", CACHE_MAX_ENV, text,
+                    CACHE_MAX_MB_DEFAULT)
+    return CACHE_MAX_MB_DEFAULT * 2**20
+
+
+def evict(max_bytes: int, keep: Path | None = None) -> list[Path]:
+    """Remove the least recently used entries until the folder holds at most max_bytes (the
+    entry just written is kept even when it alone is larger). Several processes may evict at
+    once: an entry already gone is simply skipped."""
+    entries = []
+    for path in cache_dir().iterdir() if cache_dir().is_dir() else ():
+        if not ENTRY_PATTERN.fullmatch(path.name):
+            continue
+        try:
+            stat = path.stat()
+        except OSError:
+            continue
+        entries.append((stat.st_mtime_ns, path.name, stat.st_size, path))
+    total = sum(size for _, _, size, _ in entries)
+    removed = []
+    for _, _, size, path in sorted(entries):
+        if total <= max_bytes:
+            break
+        if path == keep:
+            continue
+        try:
+            path.unlink(missing_ok=True)  # another process may have evicted it already
+        except OSError:
+            continue
+        total -= size
+        removed.append(path)
+    return removed

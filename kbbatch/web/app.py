@@ -29,6 +29,7 @@ from werkzeug.serving import make_server
 
 from kbbatch.camera import working_size
 from kbbatch.depth import cache as depth_cache
+from kbbatch.fingerprint import file_sha256
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.manifest import (
     ManifestEntry,
@@ -192,7 +193,7 @@ class ReviewSession:
         stat = path.stat()
         key = (str(path), stat.st_mtime_ns, stat.st_size)
         if key not in self._hashes:
-            self._hashes[key] = depth_cache.file_hash(path)
+            self._hashes[key] = file_sha256(path)
         return self._hashes[key]
 
     def _key_lock(self, key: str) -> threading.Lock:

@@ -1,0 +1,108 @@
+"""The depth cache's size bound: least recently used entries go first, the newest stay, and a
+reader never sees a partial entry while another process writes and evicts."""
+
+import logging
+import multiprocessing
+import time
+
+import numpy as np
+
+from kbbatch.depth import DepthResult
+from kbbatch.depth import cache as depth_cache
+
+SIDE_PX = 256  # one entry: 256 KiB of float32 plus the npz header
+TICK_S = 0.03
+"""Between cache operations: longer than the file system's coarse timestamp tick (1-10 ms)."""
+
+
+def key(index: int) -> str:
+    return f"{index:032x}"
+
+
+def result(value: float, side_px: int = SIDE_PX) -> DepthResult:
+    return DepthResult(np.full((side_px, side_px), value, np.float32), "ramp", "test")
+
+
+def present() -> set[int]:
+    return {int(path.stem, 16) for path in depth_cache.cache_dir().glob("*.npz")}
+
+
+def test_past_its_bound_the_least_recently_used_entries_go(monkeypatch):
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "1")  # 1 MiB: three entries fit, not four
+    for index in range(3):
+        depth_cache.store(key(index), result(index))
+        time.sleep(TICK_S)
+    assert present() == {0, 1, 2}
+    assert depth_cache.load(key(0)).disparity[0, 0] == 0  # read: now the most recently used
+    time.sleep(TICK_S)
+    depth_cache.store(key(3), result(3))
+    assert present() == {0, 2, 3}, "the least recently used entry (1) should have gone"
+    for index in range(4, 8):
+        time.sleep(TICK_S)
+        depth_cache.store(key(index), result(index))
+    assert present() == {5, 6, 7}
+    total = sum(path.stat().st_size for path in depth_cache.cache_dir().glob("*.npz"))
+    assert total <= 2**20
+    for index in (5, 6, 7):
+        assert depth_cache.load(key(index)).disparity[0, 0] == index
+
+
+def test_an_entry_larger_than_the_bound_is_still_kept(monkeypatch):
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "0.1")
+    depth_cache.store(key(1), result(1))
+    time.sleep(TICK_S)
+    depth_cache.store(key(2), result(2))
+    assert present() == {2}
+
+
+def test_the_bound_defaults_to_2_gb_and_a_bad_value_says_so(monkeypatch, caplog):
+    monkeypatch.delenv(depth_cache.CACHE_MAX_ENV, raising=False)
+    assert depth_cache.cache_max_bytes() == 2048 * 2**20
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "500")
+    assert depth_cache.cache_max_bytes() == 500 * 2**20
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "lots")
+    with caplog.at_level(logging.WARNING):
+        assert depth_cache.cache_max_bytes() == 2048 * 2**20
+    assert "KBBATCH_CACHE_MAX_MB='lots' is not a size in MB" in caplog.text
+
+
+def test_a_damaged_entry_is_a_miss_not_an_error():
+    depth_cache.store(key(1), result(1))
+    path = depth_cache.cache_dir() / f"{key(1)}.npz"
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # truncated by a bad copy
+    assert depth_cache.load(key(1)) is None
+
+
+WATCHED = 99
+"""The entry the reader reads: the writer rewrites it in place, each time followed by another
+entry that pushes the folder past its bound; it is never the least recently used one, so a
+miss can only mean a reader met a partial file."""
+
+
+def write_and_evict(rounds: int) -> None:
+    """Another process: rewrites the watched entry and fills the cache past its bound."""
+    for index in range(rounds):
+        depth_cache.store(key(WATCHED), result(float(index % 2), 1024))
+        depth_cache.store(key(1 + index % 5), result(7.0, 1024))
+
+
+def test_a_reader_never_sees_a_partial_entry_while_another_process_writes(monkeypatch):
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "10")  # 4 MiB entries: constant eviction
+    depth_cache.store(key(WATCHED), result(0.0, 1024))
+    writer = multiprocessing.get_context("fork").Process(target=write_and_evict, args=(40,))
+    writer.start()
+    reads = 0
+    try:
+        while writer.is_alive():
+            loaded = depth_cache.load(key(WATCHED))
+            assert loaded is not None, "the entry was missing or partial while being rewritten"
+            reads += 1
+            assert loaded.disparity.shape == (1024, 1024)
+            values = np.unique(loaded.disparity)
+            assert len(values) == 1 and values[0] in (0.0, 1.0), f"mixed entry: {values[:5]}"
+    finally:
+        writer.join(timeout=60)
+    assert writer.exitcode == 0
+    assert reads > 10, "the reader did not overlap the writer"
+    assert len(list(depth_cache.cache_dir().glob("*.npz"))) <= 2, "the bound was not kept"
+    assert not list(depth_cache.cache_dir().glob(".*part*")), "a temporary file was left"
