@@ -22,7 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from kbbatch.batch import (
+from kbbatch.device import TORCH_CPU, cuda_available, torch_device
+from kbbatch.encode import encode_frames, encoder_refusal
+from kbbatch.images import read_image
+from kbbatch.pipeline import (
     ClipOptions,
     disparity_scale,
     frame_at,
@@ -31,9 +34,6 @@ from kbbatch.batch import (
     ordered_map,
     prepare_scene,
 )
-from kbbatch.device import TORCH_CPU, cuda_available, torch_device
-from kbbatch.encode import encode_frames, encoder_refusal
-from kbbatch.images import read_image
 from kbbatch.presets import Preset, load_preset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

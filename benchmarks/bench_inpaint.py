@@ -23,10 +23,10 @@ import cv2
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.batch import ClipOptions, frame_at, frame_times, prepare_scene
 from kbbatch.camera import SceneGeometry, View, depth_from_disparity, output_view, working_view
 from kbbatch.images import read_image
 from kbbatch.inpaint import build_extended_cloud, extend_at_view, snap_edge_depth
+from kbbatch.pipeline import ClipOptions, frame_at, frame_times, prepare_scene
 from kbbatch.presets import load_preset
 from kbbatch.render import back_project, depth_edges, render, render_frame, to_uint8
 

@@ -30,9 +30,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kbbatch.batch import ClipOptions, frame_at, prepare_scene
 from kbbatch.camera import Crop, Plan, crop_at, working_size
 from kbbatch.images import read_image
+from kbbatch.pipeline import ClipOptions, frame_at, prepare_scene
 from kbbatch.presets import Preset, load_preset
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kbbatch.batch import ClipOptions, frame_at, make_clip, ordered_map, prepare_scene
 from kbbatch.encode import ffmpeg_exe, quality_options
 from kbbatch.images import read_image
+from kbbatch.pipeline import ClipOptions, frame_at, make_clip, ordered_map, prepare_scene
 from kbbatch.presets import Preset, load_preset
 
 SHARED_PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.batch import ClipOptions, cached_disparity, resize_to
 from kbbatch.camera import depth_from_disparity, working_size
 from kbbatch.images import list_images, read_image
+from kbbatch.pipeline import ClipOptions, cached_disparity, resize_to
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.planners.auto import AutoPlanner, plan_disocclusion
 from kbbatch.presets import load_preset

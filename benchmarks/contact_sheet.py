@@ -22,9 +22,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kbbatch.batch import ClipOptions, frame_at, prepare_scene
 from kbbatch.camera import Crop
 from kbbatch.images import is_image_file, read_image
+from kbbatch.pipeline import ClipOptions, frame_at, prepare_scene
 from kbbatch.presets import Preset, load_preset
 from kbbatch.render import depth_edges
 

@@ -1,76 +1,44 @@
-"""One photo in, one palindromic 3D Ken Burns clip out; and a folder of them.
+"""A folder of photos to a folder of clips: the batch runner (journal, lock, report, executor).
 
-This is the only module that knows the order of the stages:
-image -> depth -> plan -> extended point cloud -> frames -> encoder.
+Each clip is made by kbbatch.pipeline.make_clip, here (LocalExecutor) or through an executor
+such as kbbatch.ray_executor.RayExecutor.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import logging
 import os
-import shutil
-import sys
-import tempfile
 import time
-import traceback
-from collections import deque
-from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import cv2
-import numpy as np
-from tqdm import tqdm
-
-from kbbatch import paper
-from kbbatch.camera import (
-    Plan,
-    SceneGeometry,
-    View,
-    depth_from_disparity,
-    nearest_depth,
-    output_view,
-)
-from kbbatch.camera import working_size as compute_working_size
-from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
-from kbbatch.depth import cache as depth_cache
-from kbbatch.device import DeviceError, frames_device
-from kbbatch.encode import encode_frames, palindrome_order
+from kbbatch.depth import DepthError
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
-from kbbatch.inpaint import build_extended_cloud, colour_inpainter
-from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
+from kbbatch.manifest import Manifest, ManifestEntry
 from kbbatch.models import providers_used
+from kbbatch.outputs import (
+    OutputFolderError,
+    check_writable,
+    clip_name_note,
+    output_names,
+    remove_partial_clips,
+)
+from kbbatch.pipeline import (
+    CLIP_SUFFIX,
+    ClipExecutor,
+    ClipJob,
+    ClipOptions,
+    ClipResult,
+    LocalExecutor,
+    clip_fingerprint,
+    progress_bar,
+    remove_stale_scratch,
+    working_depth,
+)
 from kbbatch.planners import PlanRequest, get_planner
-from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
-from kbbatch.render import PointCloud, render_frame
-from kbbatch.risk import Risk, relieved
-from kbbatch.risk import assess as assess_risk
-
-MAX_CLOUD_POINTS = 40_000_000
-"""The largest point cloud a clip may need; a crop so tight that it would need more is refused
-with the smallest width that fits (measured: a 32 M-point cloud peaks at 3.3 GB)."""
-
-MAX_POINT_SPACING_PX = 1.8
-"""Points may land at most this far apart in the output at the tightest crop; bilinear splats
-then still meet, so the cloud is upsampled when the photo itself is too small."""
-
-FRAME_STORE_RAM_BYTES = 1 << 30
-"""Rendered frames are kept in memory up to this size, else in a temporary file, so that the
-return half of the palindrome is read back rather than rendered twice."""
-
-PROGRESS_LOG_INTERVAL_S = 30.0
-"""How often progress is written when stderr is a log or a pipe rather than a terminal."""
-
-SCRATCH_PREFIX = "kbbatch-frames-"
-"""Temporary frame stores are named with this and their process id."""
-
-CLIP_SUFFIX = ".mp4"
-
-log = logging.getLogger(__name__)
-
+from kbbatch.presets import Preset
 
 CORES_PER_JOB = 4
 """A clip already renders its frames on every core; a second photo in parallel pays only when
@@ -90,437 +58,6 @@ def default_jobs() -> int:
     return max(1, min(cores // CORES_PER_JOB, int(memory_gib // MEMORY_PER_JOB_GIB)))
 
 
-@dataclass(frozen=True)
-class ClipOptions:
-    planner: str = "auto"
-    depth: DepthOptions = DepthOptions()
-    threads: int = max(1, os.cpu_count() or 1)
-    cache_depth: bool = True
-    save_depth: bool = False
-    device: str = "cpu"
-    """Where frames are rendered: a --device value (auto, cpu or cuda), resolved by the
-    process that renders, or kbbatch.device.TORCH_CPU."""
-
-
-@dataclass
-class ClipResult:
-    source: str
-    output: str | None
-    status: str  # "done" or "failed"
-    seconds: float
-    error: str | None = None
-    depth_backend: str | None = None
-    plan: dict | None = None
-    stage_seconds: dict[str, float] = field(default_factory=dict)
-    frames: int = 0
-    detail: str | None = None  # traceback of an unexpected failure
-    note: str | None = None  # e.g. why the clip is named by content
-    risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
-    device: str | None = None  # where the frames were rendered
-
-
-@dataclass(frozen=True)
-class PreparedScene:
-    """Everything the frames need, computed once per photo."""
-
-    plan: Plan
-    scene: SceneGeometry
-    cloud: PointCloud
-    depth_backend: str
-    disparity: np.ndarray  # relative, at the working size
-    risk: Risk | None = None
-
-
-def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
-    """Point density relative to the working size: one point per output pixel at the widest
-    crop when the photo has the pixels, and never so sparse that splats stop meeting."""
-    widest = max(plan.start.width_px, plan.end.width_px)
-    tightest = min(plan.start.width_px, plan.end.width_px)
-    source_scale = source_long_px / max(scene.width_px, scene.height_px)
-    wanted = min(preset.width_px / widest, source_scale)
-    needed = preset.width_px / tightest / MAX_POINT_SPACING_PX
-    return max(wanted, needed, 1.0)
-
-
-class CropTooSmallError(ValueError):
-    """A crop so tight that its clip would need an unbounded point cloud."""
-
-
-def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Preset,
-                     source_width_px: int, photo_path: Path | None) -> None:
-    points = scene.width_px * scene.height_px * scale * scale
-    if points <= MAX_CLOUD_POINTS:
-        return
-    to_source = source_width_px / scene.width_px
-    tightest_px = min(plan.start.width_px, plan.end.width_px) * to_source
-    # needed scale is inversely proportional to the tightest crop: solve for the bound
-    smallest_px = tightest_px * (points / MAX_CLOUD_POINTS) ** 0.5
-    raise CropTooSmallError(
-        f"{photo_path or 'photo'}: a crop {tightest_px:.4g} px wide (of {source_width_px} px) "
-        f"is too tight for {preset.width_px} px output: it needs a {points / 1e6:,.0f} M-point "
-        f"cloud (limit {MAX_CLOUD_POINTS / 1e6:.0f} M); make the tightest crop at least "
-        f"{smallest_px:.0f} px wide")
-
-
-def resize_to(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    shrinking = width < image.shape[1]
-    interpolation = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
-    return cv2.resize(image, (width, height), interpolation=interpolation)
-
-
-def prepare_scene(
-    photo: np.ndarray,
-    photo_path: Path | None,
-    preset: Preset,
-    options: ClipOptions,
-    timings: dict[str, float],
-    plan: Plan | None = None,
-) -> PreparedScene:
-    """Depth, plan and the extended point cloud for one photo."""
-    clock = time.perf_counter()
-    working, depth_result, depth = working_depth(photo, photo_path, options)
-    height, width = working.shape[:2]
-    timings["depth"] = time.perf_counter() - clock
-
-    clock = time.perf_counter()
-    if plan is None:
-        plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
-    if not plan.parallax:
-        depth = np.full_like(depth, float(depth.min()))
-    scene = SceneGeometry(width, height, nearest_depth(depth))
-    risk = assess_risk(working, depth, plan, scene)
-    if risk.relief < 1.0:  # do no harm: less parallax rather than a broken-looking clip
-        log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
-                    round(100 * risk.relief), "; ".join(risk.reasons))
-        depth = relieved(depth, risk.relief)
-        scene = SceneGeometry(width, height, nearest_depth(depth))
-    timings["plan"] = time.perf_counter() - clock
-
-    clock = time.perf_counter()
-    scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
-    check_cloud_size(scale, plan, scene, preset, photo.shape[1], photo_path)
-    # The height follows the rounded width, so the cloud keeps the scale the views assume.
-    cloud_width = round(width * scale)
-    photo_cloud = resize_to(photo, cloud_width, round(height * cloud_width / width))
-    extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
-    timings["inpaint"] = time.perf_counter() - clock
-    return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
-                         depth_result.disparity, risk)
-
-
-def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions
-                  ) -> tuple[np.ndarray, DepthResult, np.ndarray]:
-    """The photo at the working size, its depth result, and depth in working units."""
-    width, height = compute_working_size(photo.shape[1], photo.shape[0])
-    working = resize_to(photo, width, height)
-    depth_result = cached_disparity(working, photo_path, options)
-    depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
-    return working, depth_result, depth
-
-
-def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions
-                     ) -> DepthResult:
-    """The depth stage, through the on-disk cache when the photo is a file."""
-    from kbbatch.fingerprint import depth_inputs, file_sha256
-
-    if photo_path is None or not options.cache_depth:
-        return estimate_disparity(working, photo_path, options.depth)
-    key = depth_inputs(photo_path, file_sha256(photo_path), options.depth).digest(
-        working.shape[:2])
-    cached = depth_cache.load(key)
-    if cached is not None and cached.disparity.shape == working.shape[:2]:
-        return cached
-    result = estimate_disparity(working, photo_path, options.depth)
-    depth_cache.store(key, result)
-    return result
-
-
-def frame_view(prepared: PreparedScene, preset: Preset, t: float) -> View:
-    """The camera of the output frame at time t in [0, 1]."""
-    return output_view(prepared.plan, prepared.scene, t, preset.width_px, preset.height_px)
-
-
-def disparity_scale(prepared: PreparedScene) -> float:
-    """Inverse depth to working disparity pixels, for the renderer's tolerances."""
-    return prepared.scene.focal_px * paper.DISPARITY_MAX_PX
-
-
-def frame_at(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
-    """One output frame at time t in [0, 1], every pixel filled."""
-    return render_frame(prepared.cloud, frame_view(prepared, preset, t),
-                        disparity_scale(prepared))
-
-
-def frame_times(preset: Preset) -> list[float]:
-    count = preset.frames_forward
-    return [i / (count - 1) for i in range(count)]
-
-
-GPU_BATCHES_AHEAD = 2
-"""Launches of frames a GPU may render ahead of the encoder (bounded memory)."""
-
-
-def render_clip_frames(
-    prepared: PreparedScene,
-    preset: Preset,
-    threads: int,
-    progress: Callable[[int], None] | None = None,
-    device: str = "cpu",
-) -> Iterator[np.ndarray]:
-    """The palindromic frame sequence; each time step is rendered once, on the CPU in
-    parallel threads, or on a GPU in launches of several frames while the encoder takes the
-    previous ones. device: as ClipOptions.device."""
-    device = frames_device(device)
-    times = frame_times(preset)
-    frame_bytes = preset.width_px * preset.height_px * 3
-    shape = (len(times), preset.height_px, preset.width_px, 3)
-    with contextlib.ExitStack() as cleanup:
-        if frame_bytes * len(times) <= FRAME_STORE_RAM_BYTES:
-            store = np.empty(shape, np.uint8)
-        else:  # a scratch folder only when the frames do not fit in memory
-            scratch = cleanup.enter_context(
-                tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-")
-            )
-            store = np.lib.format.open_memmap(Path(scratch) / "frames.npy", "w+", np.uint8, shape)
-        if device == "cpu":
-            rendered = ordered_map(lambda t: frame_at(prepared, preset, t), times, threads)
-        else:
-            from kbbatch.device import torch_device
-            from kbbatch.render_torch import render_batches
-
-            views = [frame_view(prepared, preset, t) for t in times]
-            batches = render_batches(prepared.cloud, views, disparity_scale(prepared),
-                                     torch_device(device))
-            rendered = (frame for batch in prefetched(batches, GPU_BATCHES_AHEAD)
-                        for frame in batch)
-        for index, frame in enumerate(rendered):
-            store[index] = frame
-            if progress:
-                progress(1)
-            yield frame
-        for index in palindrome_order(len(times))[len(times):]:
-            yield store[index]
-        del store
-
-
-def progress_bar(iterable: Iterable | None = None, **options) -> tqdm | LogProgress:
-    """A tqdm bar on a terminal; into a log or a pipe, plain lines now and then instead (no 0 %
-    line, no carriage returns or escape codes)."""
-    if sys.stderr.isatty():
-        return tqdm(iterable, **options)
-    return LogProgress(iterable, options.get("total"), options.get("desc", "").strip(),
-                       options.get("unit", "it"), options.get("disable", False))
-
-
-class LogProgress:
-    """Progress for logs: `photos 3/12` at most every PROGRESS_LOG_INTERVAL_S, and at the end."""
-
-    def __init__(self, iterable: Iterable | None, total: int | None, desc: str, unit: str,
-                 disable: bool) -> None:
-        self.iterable = iterable
-        self.total = total if total is not None else (
-            len(iterable) if hasattr(iterable, "__len__") else None)
-        self.desc, self.unit, self.disable = desc, unit, disable
-        self.count = 0
-        self.last_written = time.monotonic()
-
-    def __iter__(self) -> Iterator:
-        for item in self.iterable or ():
-            yield item
-            self.update(1)
-
-    def update(self, count: int = 1) -> None:
-        self.count += count
-        finished = self.total is not None and self.count >= self.total
-        if not self.disable and (finished or time.monotonic() - self.last_written
-                                 >= PROGRESS_LOG_INTERVAL_S):
-            of = f"/{self.total}" if self.total is not None else ""
-            print(f"{self.desc} {self.count}{of} {self.unit}(s)", file=sys.stderr, flush=True)
-            self.last_written = time.monotonic()
-
-    def __enter__(self) -> LogProgress:
-        return self
-
-    def __exit__(self, *_: object) -> None:
-        pass
-
-
-def remove_stale_scratch() -> list[Path]:
-    """Remove frame stores whose process is gone (kill -9 skips cleanup; 4K ones take GBs)."""
-    removed = []
-    for folder in Path(tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}*-*"):
-        owner = folder.name.removeprefix(SCRATCH_PREFIX).split("-")[0]
-        if owner.isdigit() and not process_alive(int(owner)):
-            shutil.rmtree(folder, ignore_errors=True)
-            removed.append(folder)
-    return removed
-
-
-def process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process
-        return True
-    return True
-
-
-def ordered_map(function: Callable, items: list, threads: int) -> Iterator:
-    """Results in order, computed by threads with at most 2 x threads in flight (bounded memory)."""
-    threads = max(1, threads)
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        pending: deque = deque()
-        for item in items:
-            pending.append(pool.submit(function, item))
-            if len(pending) >= 2 * threads:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
-
-
-def prefetched(items: Iterator, ahead: int) -> Iterator:
-    """The items of an iterator, produced by a background thread at most `ahead` in advance
-    (a bounded queue), so that producing and consuming overlap. Its errors are raised here;
-    closing this generator stops the producer."""
-    import queue
-    import threading
-
-    buffer: queue.Queue = queue.Queue(maxsize=ahead)
-    stop = threading.Event()
-    finished = object()
-
-    def produce() -> None:
-        try:
-            for item in items:
-                while not stop.is_set():
-                    try:
-                        buffer.put((item, None), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            buffer.put((finished, None))
-        except BaseException as error:  # handed to the consumer
-            buffer.put((finished, error))
-
-    producer = threading.Thread(target=produce, name="kbbatch-prefetch", daemon=True)
-    producer.start()
-    try:
-        while True:
-            item, error = buffer.get()
-            if error is not None:
-                raise error
-            if item is finished:
-                return
-            yield item
-    finally:
-        stop.set()
-        while producer.is_alive():
-            with contextlib.suppress(queue.Empty):
-                buffer.get(timeout=0.1)
-        producer.join()
-
-
-def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
-    """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
-    from kbbatch.images import write_image
-    from kbbatch.review import depth_picture, normalised_disparity
-
-    stem = clip_path.with_suffix("")
-    write_image(stem.with_name(stem.name + ".disparity.png"),
-                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
-    write_image(stem.with_name(stem.name + ".depth-preview.png"), depth_picture(disparity))
-
-
-def output_names(sources: list[Path]) -> dict[Path, str]:
-    """Clip file names: the photo's stem, or its full name where two photos share a stem."""
-    stems: dict[str, int] = {}
-    for source in sources:
-        stems[source.stem.lower()] = stems.get(source.stem.lower(), 0) + 1
-    return {
-        s: (s.stem if stems[s.stem.lower()] == 1 else s.name) + CLIP_SUFFIX for s in sources
-    }
-
-
-def plan_summary(plan: Plan) -> dict:
-    return {"planner": plan.planner, "easing": plan.easing, "parallax": plan.parallax,
-            "start": asdict(plan.start), "end": asdict(plan.end)}
-
-
-def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOptions
-                ) -> tuple[Preset, ClipOptions]:
-    """The preset and options for one photo, with its manifest entry's overrides."""
-    if entry is None:
-        return preset, options
-    data = entry.data
-    try:
-        if "preset" in data:
-            preset = load_preset(data["preset"])
-        preset = with_overrides(preset, duration_s=data.get("duration_s"))
-    except PresetError as error:
-        raise ManifestError(f"{entry.where('preset')}: {error}") from error
-    if "planner" in data:  # a registered name: checked when the manifest loaded
-        options = replace(options, planner=data["planner"])
-    return preset, replace(options, depth=entry_depth(entry, options.depth))
-
-
-def entry_depth(entry: ManifestEntry | None, depth: DepthOptions) -> DepthOptions:
-    """The depth options for a photo: with the depth file its manifest entry names."""
-    if entry is None or entry.depth_file is None:
-        return depth
-    return replace(depth, file=str(entry.depth_file))
-
-
-def make_clip(
-    source: Path,
-    output: Path,
-    preset: Preset,
-    options: ClipOptions,
-    show_progress: bool = True,
-    entry: ManifestEntry | None = None,
-) -> ClipResult:
-    """Render one photo into one clip; failures are returned, never raised."""
-    started = time.perf_counter()
-    timings: dict[str, float] = {}
-    result = ClipResult(str(source), None, "failed", 0.0)
-    try:
-        preset, options = apply_entry(entry, preset, options)
-        clock = time.perf_counter()
-        photo = read_image(source)
-        timings["read"] = time.perf_counter() - clock
-        plan = None
-        if entry is not None and entry.has_crops:
-            working_width, _ = compute_working_size(photo.shape[1], photo.shape[0])
-            plan = entry.plan(photo.shape[1], photo.shape[0], working_width, preset.aspect,
-                              preset.easing)
-        prepared = prepare_scene(photo, source, preset, options, timings, plan)
-        result.depth_backend = prepared.depth_backend
-        result.risk = prepared.risk.summary() if prepared.risk else None
-        if options.save_depth:
-            save_depth_images(output, prepared.disparity)
-        result.plan = plan_summary(prepared.plan)
-        clock = time.perf_counter()
-        result.device = frames_device(options.device)
-        with progress_bar(total=preset.frames_forward, desc=f"  frames {source.name}",
-                          unit="frame", leave=False, disable=not show_progress) as bar:
-            frames = render_clip_frames(prepared, preset, options.threads, bar.update,
-                                        result.device)
-            with atomic_output(output, CLIP_SUFFIX) as temp_path:
-                result.frames = encode_frames(temp_path, frames, preset)
-        timings["frames+encode"] = time.perf_counter() - clock
-        result.output = str(output)
-        result.status = "done"
-    except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
-            DeviceError) as error:
-        result.error = str(error)
-    except Exception as error:  # one photo must never stop the batch
-        result.error = f"{source}: {type(error).__name__}: {error}"
-        result.detail = traceback.format_exc()
-    result.seconds = time.perf_counter() - started
-    result.stage_seconds = {k: round(v, 3) for k, v in timings.items()}
-    return result
 
 
 @dataclass
@@ -552,52 +89,8 @@ REPORT_NAME = "kbbatch-report.json"
 PHOTO_KINDS = "jpg, jpeg, png, webp, tif, tiff, bmp"
 
 
-class OutputFolderError(OSError):
-    pass
-
-
 class EmptyFolderError(ValueError):
     """Nothing to do: no photo in the folder (and no manifest entry naming one)."""
-
-
-def check_writable(folder: Path) -> None:
-    """Fail early, with the reason, when clips could never be written to a folder."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".kbbatch-write-test-"):
-            pass
-    except OSError as error:
-        raise OutputFolderError(f"{folder}: output folder is not writable "
-                                f"({error.strerror or error})") from error
-
-
-def remove_partial_clips(folder: Path) -> list[Path]:
-    """Temporary clips (`.NAME.XXXX.part.mp4`) left by a killed run; call with the folder
-    locked, so that no live run's file is taken."""
-    removed = []
-    for partial in folder.glob(".*.part*"):
-        partial.unlink(missing_ok=True)
-        removed.append(partial)
-    return removed
-
-
-def clip_fingerprint(source: Path, content: str, preset: Preset, options: ClipOptions,
-                     entry: ManifestEntry | None) -> str:
-    """The digest of every input of a clip (kbbatch.fingerprint): photo, depth file, models,
-    settings and the stages' code. Threads and device are left out: the frames do not depend
-    on them (the GPU renderer's are within 50 dB PSNR of the CPU's). Raises OSError when a
-    depth file named for the photo cannot be read."""
-    from kbbatch.fingerprint import clip_inputs
-
-    settings = (asdict(preset), options.planner, entry.data if entry else None)
-    return clip_inputs(source, content, entry_depth(entry, options.depth), settings).digest
-
-
-def clip_name_note(source: Path, preferred: str, name: str) -> str | None:
-    if name == preferred:
-        return None
-    return (f"{source.name}: {preferred} already holds a clip of another photo; this one is "
-            f"named by its content: {name}")
 
 
 @contextlib.contextmanager
@@ -629,18 +122,21 @@ def run_folder(
     manifest: Manifest | None = None,
     force: bool = False,
     fail_fast: bool = False,
+    executor: ClipExecutor | None = None,
 ) -> RunReport:
     """Every photo in a folder to a clip in output_folder; the run report is written there.
 
     Clips that are complete and up to date (same photo, same settings, the clip untouched) are
     skipped unless force; the journal in the output folder remembers what was made with what.
     The output folder is locked for the run; partial clips of a killed run are removed first.
-    SIGTERM stops after the clip in progress, Ctrl-C at once; either way nothing partial stays
-    and the journal says which photos are left.
+    SIGTERM stops after the clips in progress, Ctrl-C at once; either way nothing partial stays
+    and the journal says which photos are left. Naming, the journal, the lock and the report
+    stay here; the executor only makes clips (here, or on a cluster).
     """
     from kbbatch.images import scan_folder
     from kbbatch.journal import FolderLock, Journal, JournalError
 
+    executor = executor or LocalExecutor()
     remove_stale_scratch()
     output_folder = output_folder.absolute()
     scan = scan_folder(folder, ignore=(output_folder.name,)
@@ -668,27 +164,45 @@ def run_folder(
         lock.release()
         raise OutputFolderError(str(error)) from error
     names = output_names(scan.photos)
+    bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
+                       disable=not show_progress)
+
+    def jobs() -> Iterator[ClipJob]:
+        """The photos to make, each started in the journal as the executor takes it."""
+        for photo in scan.photos:
+            if stop:
+                return
+            entry = manifest.entry(photo.name) if manifest else None
+            if entry is not None and entry.excluded:
+                results.append(ClipResult(str(photo.absolute()), None, "excluded", 0.0))
+                bar.update()
+                continue
+            job = start_job(journal, photo.absolute(), output_folder, names[photo], preset,
+                            options, entry, force)
+            if isinstance(job, ClipResult):  # skipped, or failed before it could start
+                results.append(job)
+                bar.update()
+                if fail_fast and job.status == "failed":
+                    return
+                continue
+            yield job
+
     try:
         with stop_on_sigterm(stop):
             for job in journal.jobs("running"):  # a run that was killed or interrupted
                 journal.finish(Path(job.source), "queued", 0.0, "interrupted")
-            for photo in progress_bar(scan.photos, desc="photos", unit="photo",
-                                      disable=not show_progress):
-                if stop:
-                    break
-                entry = manifest.entry(photo.name) if manifest else None
-                if entry is not None and entry.excluded:
-                    results.append(ClipResult(str(photo.absolute()), None, "excluded", 0.0))
-                    continue
-                result = render_one(journal, photo.absolute(), output_folder, names[photo],
-                                    preset, options, entry, show_progress, force)
-                results.append(result)
-                if fail_fast and result.status == "failed":
-                    break
+            with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
+                                    ) as rendered:
+                for job, result in rendered:
+                    results.append(finish_job(journal, job, result))
+                    bar.update()
+                    if fail_fast and results[-1].status == "failed":
+                        break
     except KeyboardInterrupt:
         stop["by"] = "SIGINT"
         raise
     finally:
+        bar.close()
         with contextlib.suppress(JournalError):
             for job in journal.jobs("running"):
                 journal.finish(Path(job.source), "queued", 0.0,
@@ -706,10 +220,11 @@ def run_folder(
     return report
 
 
-def render_one(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,
-               options: ClipOptions, entry: ManifestEntry | None, show_progress: bool,
-               force: bool) -> ClipResult:
-    """One photo of a batch, journalled; a journal that cannot be written fails the photo."""
+def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,
+              options: ClipOptions, entry: ManifestEntry | None, force: bool
+              ) -> ClipJob | ClipResult:
+    """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
+    to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
     from kbbatch.fingerprint import file_sha256
     from kbbatch.images import unreadable_reason
     from kbbatch.journal import JournalError, source_fingerprint
@@ -727,12 +242,22 @@ def render_one(journal, source: Path, output_folder: Path, preferred: str, prese
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
             return ClipResult(str(source), str(output), "skipped", 0.0)
         journal.start(source, fingerprint, settings, name, content)
-        result = make_clip(source, output, preset, options, show_progress, entry)
-        result.note = clip_name_note(source, preferred, name)
-        clip = source_fingerprint(output) if result.status == "done" else None
-        journal.finish(source, result.status, result.seconds, result.error, clip)
     except JournalError as error:
         return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
+    return ClipJob(source, output, entry, preferred)
+
+
+def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
+    """Record a made clip in the journal; a journal that cannot be written fails the photo."""
+    from kbbatch.journal import JournalError, source_fingerprint
+
+    if job.preferred:
+        result.note = clip_name_note(job.source, job.preferred, job.output.name)
+    try:
+        clip = source_fingerprint(job.output) if result.status == "done" else None
+        journal.finish(job.source, result.status, result.seconds, result.error, clip)
+    except (JournalError, OSError) as error:
+        return ClipResult(str(job.source), None, "failed", 0.0, error=f"{job.source}: {error}")
     return result
 
 

@@ -1,4 +1,4 @@
-"""Command line: thin click commands over kbbatch.batch. `kbbatch FOLDER` renders a folder."""
+"""Command line: thin click commands over the runners. `kbbatch FOLDER` renders a folder."""
 
 from __future__ import annotations
 
@@ -13,9 +13,7 @@ from kbbatch import models as model_registry
 from kbbatch.batch import (
     CORES_PER_JOB,
     MEMORY_PER_JOB_GIB,
-    ClipOptions,
     EmptyFolderError,
-    OutputFolderError,
     RunReport,
     default_jobs,
     plan_folder,
@@ -25,6 +23,8 @@ from kbbatch.depth import DepthOptions
 from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
+from kbbatch.outputs import OutputFolderError
+from kbbatch.pipeline import ClipOptions
 from kbbatch.planners import PLANNER_NAMES
 from kbbatch.presets import (
     Preset,
@@ -34,6 +34,7 @@ from kbbatch.presets import (
     setting_docs,
     with_overrides,
 )
+from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
 
 EXIT_NOTHING_TO_DO = 3
 """Exit status of a batch over a folder without photos (0: all made, 1: some failed)."""
@@ -135,6 +136,19 @@ def _clip_options(options: dict, **more) -> ClipOptions:
     return ClipOptions(planner=options.pop("planner"), depth=depth, **more)
 
 
+executor_options = _shared(
+    click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
+                 default="local", show_default=True,
+                 help="Make clips on this machine, or as tasks on a Ray cluster."),
+    click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else "
+                 "Ray starts on this machine)."),
+    click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
+                 show_default=True, help="CPUs a clip reserves on a Ray worker (threads)."),
+    click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
+                 show_default=True, help="GPUs (or a fraction) a clip reserves on a worker."),
+)
+
+
 @main.command()
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path),
@@ -149,6 +163,7 @@ def _clip_options(options: dict, **more) -> ClipOptions:
 @click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
 @click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
+@executor_options
 def render(folder: Path, output: Path | None, manifest_path: Path | None, save_depth: bool,
            threads: int, force: bool, fail_fast: bool, quiet: bool, **shared) -> None:
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
@@ -156,10 +171,12 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
     options = _clip_options(shared, threads=threads, save_depth=save_depth)
     output = output or folder / "kenburns"
     manifest = _load_manifest(manifest_path)
+    executor = _executor(shared)
     try:
         report = run_folder(folder, output, preset, options, show_progress=not quiet,
-                            manifest=manifest, force=force, fail_fast=fail_fast)
-    except (OutputFolderError, FolderBusyError) as error:
+                            manifest=manifest, force=force, fail_fast=fail_fast,
+                            executor=executor)
+    except (OutputFolderError, FolderBusyError, RayUnavailableError) as error:
         raise click.ClickException(str(error)) from error
     except EmptyFolderError as error:
         click.echo(f"Error: {error}", err=True)
@@ -173,6 +190,21 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(1 if report.failed else 0)
+
+
+def _executor(options: dict) -> RayExecutor | None:
+    """The executor of `executor_options` (None: this machine); Ray is checked to be installed
+    before any photo is touched."""
+    name = options.pop("executor_name")
+    executor = RayExecutor(options.pop("ray_address"), options.pop("ray_cpus_per_clip"),
+                           options.pop("ray_gpus_per_clip"))
+    if name == "local":
+        return None
+    try:
+        import_ray()
+    except RayUnavailableError as error:
+        raise click.ClickException(str(error)) from error
+    return executor
 
 
 def _load_manifest(path: Path | None):
@@ -342,6 +374,7 @@ def models_pull(name: str, sha256: str | None) -> None:
 @click.option("--settle", "settle_s", type=float, default=2.0, show_default=True,
               help="Seconds a photo's size and time must stay unchanged before it is taken.")
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
+@executor_options
 def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: bool, jobs: int | None,
           poll: bool, settle_s: float, keep_sources: bool, **shared) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
@@ -353,11 +386,13 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     preset = _preset(shared)
     options = _clip_options(shared, save_depth=save_depth)
+    executor = _executor(shared)
     settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
-                             jobs or default_jobs(), poll, settle_s, keep_sources)
+                             jobs or default_jobs(), poll, settle_s, keep_sources, executor)
     try:
         sys.exit(run_daemon(settings))
-    except (OutputFolderError, FolderBusyError, JournalError) as error:
+    except (OutputFolderError, FolderBusyError, JournalError,
+            RayUnavailableError) as error:
         raise click.ClickException(str(error)) from error
 
 

@@ -29,7 +29,8 @@ KBBATCH_ROOT = Path(__file__).resolve().parent
 DEPTH_CODE = ("depth", "segment.py", "models.py")
 """The depth stage's code, relative to the package: its version is a hash of these sources."""
 
-RUNNER_CODE = ("cli.py", "watch.py", "journal.py", "review.py", "__main__.py", "web")
+RUNNER_CODE = ("cli.py", "batch.py", "watch.py", "ray_executor.py", "outputs.py", "journal.py",
+               "review.py", "__main__.py", "web")
 """Code that runs stages but does not shape a clip's pixels: left out of the clip's version, so
 a change to the command line or the daemon does not re-render a library."""
 

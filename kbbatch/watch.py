@@ -20,22 +20,13 @@ import signal
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from kbbatch import models
-from kbbatch.batch import (
-    ClipOptions,
-    ClipResult,
-    check_writable,
-    clip_fingerprint,
-    make_clip,
-    output_names,
-    remove_partial_clips,
-    remove_stale_scratch,
-)
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import atomic_output, is_image_file, scan_folder, unreadable_reason
 from kbbatch.journal import (
@@ -45,7 +36,16 @@ from kbbatch.journal import (
     source_fingerprint,
 )
 from kbbatch.manifest import Manifest, ManifestEntry
+from kbbatch.outputs import check_writable, output_names, remove_partial_clips
+from kbbatch.pipeline import (
+    ClipOptions,
+    ClipResult,
+    clip_fingerprint,
+    make_clip,
+    remove_stale_scratch,
+)
 from kbbatch.presets import Preset
+from kbbatch.ray_executor import RayClipPool, RayExecutor
 
 log = logging.getLogger("kbbatch.watch")
 
@@ -67,6 +67,7 @@ class WatchSettings:
     poll: bool = False
     settle_s: float = 2.0
     keep_sources: bool = False
+    executor: RayExecutor | None = None  # None: --jobs processes on this machine
 
 
 def is_candidate(path: Path) -> bool:
@@ -161,109 +162,97 @@ class Suspect:
     until: float
 
 
-class Daemon:
-    def __init__(self, settings: WatchSettings) -> None:
-        # absolute: the journal keys jobs by the photo's path
-        settings = replace(settings, inbox=settings.inbox.absolute(),
-                           outbox=settings.outbox.absolute())
+@dataclass(frozen=True)
+class Arrival:
+    """A photo seen in the inbox and not taken yet: it is complete once it arrived by rename, or
+    once its size and time stayed put for the settle time."""
+
+    size_bytes: int
+    mtime_ns: int
+    since: float  # time.monotonic() when the size or time was last seen to change
+    renamed: bool  # arrived by rename (complete at once)
+
+
+class InboxTracker:
+    """Which photos in the inbox are complete: file events in, settled photos out."""
+
+    def __init__(self, inbox: Path, settle_s: float) -> None:
+        self.inbox = inbox
+        self.settle_s = settle_s
+        self.events: queue.Queue[tuple[Path, bool]] = queue.Queue()  # filled by the observer
+        self.arrivals: dict[Path, Arrival] = {}
+        self.mentioned: set[Path] = set()  # subfolders and broken links already logged
+
+    def notice(self, path: Path, renamed: bool = False) -> None:
+        """A file event (from any thread), or a photo handed back to be taken again."""
+        self.events.put((path, renamed))
+
+    def forget(self, path: Path) -> None:
+        """The photo was taken (or filed away): no longer waiting."""
+        del self.arrivals[path]
+
+    def collect_events(self) -> None:
+        now = time.monotonic()
+        while True:
+            try:
+                path, renamed = self.events.get_nowait()
+            except queue.Empty:
+                break
+            if path.parent != self.inbox or not self.usable(path):
+                continue
+            try:
+                stat = path.stat()
+            except FileNotFoundError:
+                self.arrivals.pop(path, None)
+                continue
+            previous = self.arrivals.get(path)
+            changed = previous is None or (previous.size_bytes, previous.mtime_ns) != (
+                stat.st_size, stat.st_mtime_ns)
+            since = now if changed else previous.since
+            self.arrivals[path] = Arrival(stat.st_size, stat.st_mtime_ns, since,
+                                          renamed or (previous.renamed if previous else False))
+
+    def usable(self, path: Path) -> bool:
+        """A photo to take; a subfolder or a broken link is said once in the log."""
+        if path.name in (DONE_FOLDER, FAILED_FOLDER) or path.name.startswith("."):
+            return False
+        if path.is_dir() or (is_candidate(path) and path.is_symlink() and not path.exists()):
+            if path not in self.mentioned:
+                self.mentioned.add(path)
+                what = ("subfolders are not watched; move its photos into the inbox"
+                        if path.is_dir() else "broken symbolic link, its target is missing")
+                log.warning("%s: %s", path, what)
+            return False
+        return is_candidate(path)
+
+    def is_ready(self, path: Path) -> bool:
+        arrival = self.arrivals[path]
+        try:
+            stat = path.stat()
+        except FileNotFoundError:
+            return False
+        if (stat.st_size, stat.st_mtime_ns) != (arrival.size_bytes, arrival.mtime_ns):
+            self.arrivals[path] = Arrival(stat.st_size, stat.st_mtime_ns, time.monotonic(), False)
+            return False
+        return arrival.renamed or time.monotonic() - arrival.since >= self.settle_s
+
+
+class JobRunner:
+    """The clips of settled photos: submission to the pool, results, worker deaths, the photos'
+    moves to done/ or failed/ and the failure reports; the journal records every step."""
+
+    def __init__(self, settings: WatchSettings, journal: Journal, keep_sources: bool,
+                 failure_reports: Path, requeue: Callable[[Path, bool], None]) -> None:
         self.settings = settings
-        self.stopping = threading.Event()
-        self.events: queue.Queue[tuple[Path, bool]] = queue.Queue()
-        self.pending: dict[Path, tuple[int, int, float, bool]] = {}
+        self.journal = journal
+        self.keep_sources = keep_sources
+        self.failure_reports = failure_reports
+        self.requeue = requeue  # hands a photo back to the inbox tracker (path, renamed)
         self.in_flight: dict[Future, InFlight] = {}
         self.suspects: dict[Path, Suspect] = {}
-        self.journal: Journal | None = None
-        self.keep_sources = settings.keep_sources
-        self.failure_reports = settings.inbox / FAILED_FOLDER
-        self.mentioned: set[Path] = set()  # subfolders and broken links already logged
         self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
-        self.pool: ProcessPoolExecutor | None = None
+        self.pool: ProcessPoolExecutor | RayClipPool | None = None
 
-    # --- lifecycle -------------------------------------------------------------------------
-    def request_stop(self, *_: object) -> None:
-        if not self.stopping.is_set():
-            log.info("stopping: no new work; finishing %d clip(s) in progress",
-                     len(self.in_flight))
-        self.stopping.set()
-
-    def run(self) -> int:
-        s = self.settings
-        check_writable(s.outbox)
-        s.inbox.mkdir(parents=True, exist_ok=True)
-        locks = [FolderLock(s.inbox, "watching"), FolderLock(s.outbox, "writing clips into")]
-        try:
-            return self.serve()
-        finally:
-            for lock in locks:
-                lock.release()
-
-    def serve(self) -> int:
-        s = self.settings
-        if not folder_is_writable(s.inbox):
-            log.warning("%s is read-only: photos stay where they are (as with --keep-sources) "
-                        "and failure reports go to %s", s.inbox, s.outbox / FAILED_FOLDER)
-            self.keep_sources = True
-            self.failure_reports = s.outbox / FAILED_FOLDER
-        self.journal = Journal(s.outbox)
-        self.recover()
-        signal.signal(signal.SIGTERM, self.request_stop)
-        signal.signal(signal.SIGINT, self.request_stop)
-        observer = self.start_observer()
-        for path in sorted(s.inbox.iterdir()):
-            self.events.put((path, False))
-        threads = max(1, (os.cpu_count() or 1) // s.jobs)
-        options = replace(s.options, threads=threads)
-        log.info("watching %s -> %s (preset %s, %d job(s), %s, frames on %s)", s.inbox,
-                 s.outbox, s.preset.name, s.jobs, "polling" if s.poll else "inotify",
-                 options.device)
-        self.pool = self.new_pool()
-        try:
-            while not self.stopping.is_set() or self.in_flight:
-                try:
-                    self.collect_events()
-                    self.submit_ready(options)
-                    self.finish_completed()
-                    self.file_suspects()
-                except JournalError as error:
-                    log.error("%s; pausing %.0f s, then retrying (nothing is lost)", error,
-                              JOURNAL_RETRY_S)
-                    self.stopping.wait(JOURNAL_RETRY_S)
-                time.sleep(LOOP_INTERVAL_S)
-        finally:
-            self.pool.shutdown(wait=True)
-        # watchdog's inotify thread, stopped while it waits for an event, logs a spurious
-        # "queue_events() called when the thread is inactive" error; nothing is wrong then.
-        logging.getLogger("watchdog.observers.inotify").setLevel(logging.CRITICAL)
-        observer.stop()
-        observer.join()
-        self.journal.close()
-        log.info("stopped")
-        return 0
-
-    def start_observer(self):
-        from watchdog.events import FileSystemEventHandler
-        from watchdog.observers import Observer
-        from watchdog.observers.polling import PollingObserver
-
-        events = self.events
-
-        class Handler(FileSystemEventHandler):
-            def on_created(self, event):
-                events.put((Path(event.src_path), False))
-
-            def on_modified(self, event):
-                if not event.is_directory:
-                    events.put((Path(event.src_path), False))
-
-            def on_moved(self, event):
-                events.put((Path(event.dest_path), True))
-
-        observer = PollingObserver(timeout=0.5) if self.settings.poll else Observer()
-        observer.schedule(Handler(), str(self.settings.inbox), recursive=False)
-        observer.start()
-        return observer
-
-    # --- recovery --------------------------------------------------------------------------
     def recover(self) -> None:
         """After a crash: drop partial clips, and settle jobs whose clip was already renamed."""
         s = self.settings
@@ -283,75 +272,35 @@ class Daemon:
             else:
                 log.info("resuming %s: interrupted before its clip was complete", job.name)
 
-    # --- the loop --------------------------------------------------------------------------
-    def collect_events(self) -> None:
-        now = time.monotonic()
-        while True:
-            try:
-                path, renamed = self.events.get_nowait()
-            except queue.Empty:
-                break
-            if path.parent != self.settings.inbox or not self.usable(path):
-                continue
-            try:
-                stat = path.stat()
-            except FileNotFoundError:
-                self.pending.pop(path, None)
-                continue
-            previous = self.pending.get(path)
-            changed = previous is None or previous[:2] != (stat.st_size, stat.st_mtime_ns)
-            since = now if changed else previous[2]
-            self.pending[path] = (stat.st_size, stat.st_mtime_ns, since,
-                                  renamed or (previous[3] if previous else False))
-
-    def usable(self, path: Path) -> bool:
-        """A photo to take; a subfolder or a broken link is said once in the log."""
-        if path.name in (DONE_FOLDER, FAILED_FOLDER) or path.name.startswith("."):
-            return False
-        if path.is_dir() or (is_candidate(path) and path.is_symlink() and not path.exists()):
-            if path not in self.mentioned:
-                self.mentioned.add(path)
-                what = ("subfolders are not watched; move its photos into the inbox"
-                        if path.is_dir() else "broken symbolic link, its target is missing")
-                log.warning("%s: %s", path, what)
-            return False
-        return is_candidate(path)
-
-    def is_ready(self, path: Path) -> bool:
-        size, mtime_ns, since, renamed = self.pending[path]
-        try:
-            stat = path.stat()
-        except FileNotFoundError:
-            return False
-        if (stat.st_size, stat.st_mtime_ns) != (size, mtime_ns):
-            self.pending[path] = (stat.st_size, stat.st_mtime_ns, time.monotonic(), False)
-            return False
-        return renamed or time.monotonic() - since >= self.settings.settle_s
-
-    def new_pool(self) -> ProcessPoolExecutor:
+    def new_pool(self) -> ProcessPoolExecutor | RayClipPool:
+        """--jobs worker processes here, or --jobs clips in flight on Ray."""
+        if self.settings.executor is not None:
+            return RayClipPool(self.settings.executor).start()
         return ProcessPoolExecutor(max_workers=self.settings.jobs, initializer=_worker_init,
                                    initargs=(self.settings.jobs,))
 
-    def submit_ready(self, options: ClipOptions) -> None:
+    def submit_ready(self, inbox: InboxTracker, options: ClipOptions,
+                     stopping: threading.Event) -> None:
+        """Start the settled photos, --jobs at a time; a photo whose worker died runs alone."""
         s = self.settings
         busy = {job.path for job in self.in_flight.values()} | set(self.suspects)
-        for path in sorted(self.pending, key=lambda p: (p not in self.worker_deaths, p)):
-            if len(self.in_flight) >= s.jobs or self.stopping.is_set():
+        for path in sorted(inbox.arrivals, key=lambda p: (p not in self.worker_deaths, p)):
+            if len(self.in_flight) >= s.jobs or stopping.is_set():
                 return
             if any(job.path in self.worker_deaths for job in self.in_flight.values()):
                 return  # a photo whose worker died runs alone, so a second death is its own
             if path in self.worker_deaths and self.in_flight:
                 return
-            if path in busy or not self.is_ready(path):
+            if path in busy or not inbox.is_ready(path):
                 continue
-            renamed = self.pending[path][3]
+            renamed = inbox.arrivals[path].renamed
             entry = s.manifest.entry(path.name) if s.manifest else None
             try:
                 fingerprint = source_fingerprint(path)
                 content = file_sha256(path)
                 settings = clip_fingerprint(path, content, s.preset, options, entry)
             except OSError as error:
-                del self.pending[path]
+                inbox.forget(path)
                 result = ClipResult(str(path), None, "failed", 0.0,
                                     error=f"{error.filename or path}: {unreadable_reason(error)}")
                 self.file_failure(path, result)
@@ -360,12 +309,12 @@ class Daemon:
             name = self.journal.clip_name(path, content, preferred, s.outbox)
             output = s.outbox / name
             if self.journal.is_up_to_date(path, fingerprint, settings, output):
-                del self.pending[path]
+                inbox.forget(path)
                 log.info("%s: clip already complete, moving the photo", path.name)
                 self.move_source(path, DONE_FOLDER)
                 continue
             self.journal.start(path, fingerprint, settings, name, content)
-            del self.pending[path]
+            inbox.forget(path)
             if name != preferred:
                 log.warning("%s: %s already holds a clip of another photo; this one is named "
                             "by its content: %s", path.name, preferred, name)
@@ -374,7 +323,7 @@ class Daemon:
                 future = self.pool.submit(_render, path, output, s.preset, options, entry)
             except BrokenProcessPool:  # broke since the last look: its jobs come back below
                 self.journal.finish(path, "queued", 0.0, "worker pool broken; retrying")
-                self.events.put((path, True))
+                self.requeue(path, True)
                 return
             self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed)
 
@@ -402,7 +351,7 @@ class Daemon:
                 del self.in_flight[future]
                 log.warning("%s changed while it was processed (still being written?): "
                             "taken again once it settles", job.path.name)
-                self.events.put((job.path, False))
+                self.requeue(job.path, False)
                 continue
             self.worker_deaths.pop(job.path, None)
             clip = None
@@ -457,7 +406,7 @@ class Daemon:
             log.warning("%s: the worker process rendering it died (out of memory, or killed); "
                         "pool rebuilt, taking it again%s", job.path.name,
                         "" if alone else " alone")
-            self.events.put((job.path, True))
+            self.requeue(job.path, True)
 
     def changed_since_taken(self, job: InFlight) -> bool:
         try:
@@ -484,7 +433,7 @@ class Daemon:
                 del self.suspects[path]
                 self.journal.finish(path, "queued", 0.0, "changed after it failed")
                 log.info("%s changed after it failed: taken again once it settles", path.name)
-                self.events.put((path, False))
+                self.requeue(path, False)
             elif time.monotonic() >= suspect.until:
                 del self.suspects[path]
                 self.file_failure(path, suspect.result)
@@ -521,6 +470,106 @@ class Daemon:
         except OSError as error:
             log.error("%s: failure report cannot be written (%s)", report,
                       error.strerror or error)
+
+
+class Daemon:
+    """The wiring: locks, signals, the observer feeding the inbox tracker, and the loop that
+    hands settled photos to the job runner."""
+
+    def __init__(self, settings: WatchSettings) -> None:
+        # absolute: the journal keys jobs by the photo's path
+        settings = replace(settings, inbox=settings.inbox.absolute(),
+                           outbox=settings.outbox.absolute())
+        self.settings = settings
+        self.stopping = threading.Event()
+        self.inbox = InboxTracker(settings.inbox, settings.settle_s)
+        self.jobs: JobRunner | None = None
+
+    def request_stop(self, *_: object) -> None:
+        if not self.stopping.is_set():
+            log.info("stopping: no new work; finishing %d clip(s) in progress",
+                     len(self.jobs.in_flight) if self.jobs else 0)
+        self.stopping.set()
+
+    def run(self) -> int:
+        s = self.settings
+        check_writable(s.outbox)
+        s.inbox.mkdir(parents=True, exist_ok=True)
+        locks = [FolderLock(s.inbox, "watching"), FolderLock(s.outbox, "writing clips into")]
+        try:
+            return self.serve()
+        finally:
+            for lock in locks:
+                lock.release()
+
+    def serve(self) -> int:
+        s = self.settings
+        keep_sources, failure_reports = s.keep_sources, s.inbox / FAILED_FOLDER
+        if not folder_is_writable(s.inbox):
+            log.warning("%s is read-only: photos stay where they are (as with --keep-sources) "
+                        "and failure reports go to %s", s.inbox, s.outbox / FAILED_FOLDER)
+            keep_sources, failure_reports = True, s.outbox / FAILED_FOLDER
+        journal = Journal(s.outbox)
+        jobs = self.jobs = JobRunner(s, journal, keep_sources, failure_reports,
+                                     self.inbox.notice)
+        jobs.recover()
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
+        observer = start_observer(s.inbox, s.poll, self.inbox.notice)
+        for path in sorted(s.inbox.iterdir()):
+            self.inbox.notice(path)
+        threads = max(1, (os.cpu_count() or 1) // s.jobs)
+        options = replace(s.options, threads=threads)
+        log.info("watching %s -> %s (preset %s, %d job(s), %s, frames on %s)", s.inbox,
+                 s.outbox, s.preset.name, s.jobs, "polling" if s.poll else "inotify",
+                 options.device)
+        jobs.pool = jobs.new_pool()
+        try:
+            while not self.stopping.is_set() or jobs.in_flight:
+                try:
+                    self.inbox.collect_events()
+                    jobs.submit_ready(self.inbox, options, self.stopping)
+                    jobs.finish_completed()
+                    jobs.file_suspects()
+                except JournalError as error:
+                    log.error("%s; pausing %.0f s, then retrying (nothing is lost)", error,
+                              JOURNAL_RETRY_S)
+                    self.stopping.wait(JOURNAL_RETRY_S)
+                time.sleep(LOOP_INTERVAL_S)
+        finally:
+            jobs.pool.shutdown(wait=True)
+        # watchdog's inotify thread, stopped while it waits for an event, logs a spurious
+        # "queue_events() called when the thread is inactive" error; nothing is wrong then.
+        logging.getLogger("watchdog.observers.inotify").setLevel(logging.CRITICAL)
+        observer.stop()
+        observer.join()
+        journal.close()
+        log.info("stopped")
+        return 0
+
+
+def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None]):
+    """watchdog's observer of the inbox (inotify, or polling for network shares), calling
+    notice(path, renamed) from its own thread."""
+    from watchdog.events import FileSystemEventHandler
+    from watchdog.observers import Observer
+    from watchdog.observers.polling import PollingObserver
+
+    class Handler(FileSystemEventHandler):
+        def on_created(self, event):
+            notice(Path(event.src_path), False)
+
+        def on_modified(self, event):
+            if not event.is_directory:
+                notice(Path(event.src_path), False)
+
+        def on_moved(self, event):
+            notice(Path(event.dest_path), True)
+
+    observer = PollingObserver(timeout=0.5) if poll else Observer()
+    observer.schedule(Handler(), str(inbox), recursive=False)
+    observer.start()
+    return observer
 
 
 def watch(settings: WatchSettings) -> int:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from kbbatch.batch import ClipOptions
+from kbbatch.pipeline import ClipOptions
 from kbbatch.presets import Preset
 from kbbatch.web.app import TOKEN_HEADER, ReviewServer, ReviewSession
 

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 
 from kbbatch import paper
-from kbbatch.batch import ClipOptions, cached_disparity
 from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.adjust import adjust
 from kbbatch.depth.popup import estimate_horizon, popup_disparity
 from kbbatch.depth.ramp import ground_plane_disparity
 from kbbatch.depth.refine import refine
+from kbbatch.pipeline import ClipOptions, cached_disparity
 from kbbatch.segment import Instance
 
 from .conftest import SHARED, textured_image

@@ -10,10 +10,11 @@ import pytest
 from click.testing import CliRunner
 
 from kbbatch import cli, models
-from kbbatch.batch import REPORT_NAME, ClipOptions, run_folder
+from kbbatch.batch import REPORT_NAME, run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.device import DEVICE_NAMES, DeviceError, cuda_available, resolve_device
 from kbbatch.images import write_image
+from kbbatch.pipeline import ClipOptions
 
 from .conftest import textured_image
 from .test_models import tiny_depth_model

@@ -75,18 +75,19 @@ def test_frames_beyond_the_memory_budget_go_through_a_scratch_file_that_is_remov
 ):
     import tempfile
 
-    from kbbatch import batch
+    from kbbatch import pipeline
 
     from .conftest import textured_image
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    options = batch.ClipOptions(threads=2, cache_depth=False, depth=batch.DepthOptions("ramp"))
-    prepared = batch.prepare_scene(textured_image(240, 320), None, quick_preset, options, {})
+    options = pipeline.ClipOptions(threads=2, cache_depth=False,
+                                   depth=pipeline.DepthOptions("ramp"))
+    prepared = pipeline.prepare_scene(textured_image(240, 320), None, quick_preset, options, {})
 
     def frames(budget_bytes: int) -> tuple[list[np.ndarray], list[str]]:
-        monkeypatch.setattr(batch, "FRAME_STORE_RAM_BYTES", budget_bytes)
+        monkeypatch.setattr(pipeline, "FRAME_STORE_RAM_BYTES", budget_bytes)
         seen, scratch = [], []
-        for frame in batch.render_clip_frames(prepared, quick_preset, threads=2):
+        for frame in pipeline.render_clip_frames(prepared, quick_preset, threads=2):
             seen.append(frame.copy())
             scratch += [p.name for p in tmp_path.iterdir()]
         return seen, scratch
@@ -108,7 +109,8 @@ def test_frame_stores_of_killed_processes_are_removed_by_the_next_run(tmp_path, 
     import sys
     import tempfile
 
-    from kbbatch.batch import SCRATCH_PREFIX, ClipOptions, EmptyFolderError, run_folder
+    from kbbatch.batch import EmptyFolderError, run_folder
+    from kbbatch.pipeline import SCRATCH_PREFIX, ClipOptions
     from kbbatch.presets import load_preset
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))

@@ -6,8 +6,9 @@ import sys
 
 import numpy as np
 
-from kbbatch.batch import REPORT_NAME, ClipOptions, run_folder
+from kbbatch.batch import REPORT_NAME, run_folder
 from kbbatch.encode import decode_frames, probe
+from kbbatch.pipeline import ClipOptions
 
 from .conftest import shared_photos
 

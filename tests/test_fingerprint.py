@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from kbbatch.batch import ClipOptions, cached_disparity, clip_fingerprint, run_folder
+from kbbatch.batch import run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.fingerprint import depth_inputs, file_sha256
 from kbbatch.manifest import manifest_from_data
+from kbbatch.pipeline import ClipOptions, cached_disparity, clip_fingerprint
 from kbbatch.presets import load_preset
 
 from .conftest import SHARED, shared_photos, textured_image

@@ -4,7 +4,6 @@ import cv2
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.batch import PreparedScene, frame_at
 from kbbatch.camera import (
     Crop,
     Plan,
@@ -23,6 +22,7 @@ from kbbatch.inpaint import (
     near_side_of_holes,
     snap_edge_depth,
 )
+from kbbatch.pipeline import PreparedScene, frame_at
 from kbbatch.presets import load_preset, with_overrides
 from kbbatch.render import back_project, render
 

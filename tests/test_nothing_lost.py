@@ -17,10 +17,11 @@ import pytest
 from PIL import Image
 
 from kbbatch import batch
-from kbbatch.batch import ClipOptions, default_jobs, plan_folder, run_folder
+from kbbatch.batch import default_jobs, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.images import ImageReadError, read_image
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
+from kbbatch.pipeline import ClipOptions
 
 from .conftest import textured_image
 from .test_watch import wait_for

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from kbbatch import paper
-from kbbatch.batch import ClipOptions, plan_folder, run_folder
+from kbbatch.batch import plan_folder, run_folder
 from kbbatch.camera import Crop, depth_from_disparity
 from kbbatch.manifest import ManifestError, load_manifest, plan_to_entry
+from kbbatch.pipeline import ClipOptions
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.planners.auto import plan_disocclusion
 from kbbatch.presets import load_preset, with_overrides

@@ -7,11 +7,12 @@ import threading
 import numpy as np
 import pytest
 
-from kbbatch import batch
-from kbbatch.batch import ClipOptions, frame_times, prefetched, prepare_scene
+from kbbatch import pipeline
+from kbbatch.batch import run_folder
 from kbbatch.camera import working_view
 from kbbatch.device import TORCH_CPU
 from kbbatch.images import read_image
+from kbbatch.pipeline import ClipOptions, frame_times, prefetched, prepare_scene
 from kbbatch.render import PointCloud, back_project, render_frame
 
 from .conftest import shared_photos
@@ -89,10 +90,10 @@ def test_real_photos_every_frame_matches_numba(quick_preset, monkeypatch):
     for path in sorted(photos):
         prepared = prepare_scene(read_image(path), path, quick_preset, ClipOptions(), {})
         with_soft_layers += prepared.cloud.opaque_count < len(prepared.cloud)
-        frames = list(batch.render_clip_frames(prepared, quick_preset, 2, device=TORCH_CPU))
+        frames = list(pipeline.render_clip_frames(prepared, quick_preset, 2, device=TORCH_CPU))
         assert len(frames) == quick_preset.frames_total
         for index, t in enumerate(frame_times(quick_preset)):
-            expected = batch.frame_at(prepared, quick_preset, t)
+            expected = pipeline.frame_at(prepared, quick_preset, t)
             assert psnr_db(frames[index], expected) >= MIN_PSNR_DB, (path.name, index)
     assert with_soft_layers, "none of the photos has soft layers (depth edges)"
 
@@ -131,8 +132,8 @@ def test_a_clip_rendered_by_torch_is_encoded_whole(tmp_path, quick_preset):
     folder.mkdir()
     write_image(folder / "a.png", textured_image(180, 320, seed=5))
     options = ClipOptions(threads=2, device=TORCH_CPU)
-    report = batch.run_folder(folder, tmp_path / "out", quick_preset, options,
-                              show_progress=False)
+    report = run_folder(folder, tmp_path / "out", quick_preset, options,
+                        show_progress=False)
     assert [r.status for r in report.results] == ["done"], report.results[0].error
     assert report.device == TORCH_CPU and report.results[0].device == TORCH_CPU
     clip = tmp_path / "out" / "a.mp4"

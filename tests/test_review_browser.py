@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from kbbatch.batch import ClipOptions
 from kbbatch.encode import decode_frames
 from kbbatch.images import read_image
 from kbbatch.manifest import load_manifest
+from kbbatch.pipeline import ClipOptions
 from kbbatch.presets import load_preset, with_overrides
 from tests.conftest import PHOTOS, shared_photos
 from tests.reviewserver import running_server

@@ -16,12 +16,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from kbbatch.batch import ClipOptions, run_folder
+from kbbatch.batch import run_folder
 from kbbatch.cli import main
 from kbbatch.depth import DepthOptions
 from kbbatch.encode import probe
 from kbbatch.images import write_image
 from kbbatch.manifest import load_manifest
+from kbbatch.pipeline import ClipOptions
 from kbbatch.presets import load_preset, with_overrides
 from tests.conftest import textured_image
 from tests.reviewserver import running_server

@@ -6,10 +6,11 @@ import cv2
 import numpy as np
 
 from kbbatch import paper
-from kbbatch.batch import REPORT_NAME, ClipOptions, run_folder
+from kbbatch.batch import REPORT_NAME, run_folder
 from kbbatch.camera import Crop, Plan, SceneGeometry, depth_from_disparity, nearest_depth
 from kbbatch.depth import DepthOptions
 from kbbatch.manifest import load_manifest
+from kbbatch.pipeline import ClipOptions
 from kbbatch.risk import FILL_FRACTION_MAX, FRAGMENT_COUNT_MAX, assess, count_fragments, relieved
 
 from .conftest import textured_image

@@ -13,9 +13,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from kbbatch.batch import ClipOptions, OutputFolderError, run_folder
+from kbbatch.batch import run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.images import ImageReadError, read_image
+from kbbatch.outputs import OutputFolderError
+from kbbatch.pipeline import ClipOptions
 
 from .badinputs import BAD, GOOD, write_corpus
 from .conftest import textured_image

@@ -27,7 +27,6 @@ from flask import Flask, Response, jsonify, request, send_file
 from werkzeug.exceptions import HTTPException
 from werkzeug.serving import make_server
 
-from kbbatch.batch import ClipOptions, apply_entry, make_clip, resize_to, working_depth
 from kbbatch.camera import working_size
 from kbbatch.depth import cache as depth_cache
 from kbbatch.fingerprint import file_sha256
@@ -40,6 +39,7 @@ from kbbatch.manifest import (
     plan_to_entry,
     write_manifest,
 )
+from kbbatch.pipeline import ClipOptions, apply_entry, make_clip, resize_to, working_depth
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
 from kbbatch.review import depth_picture

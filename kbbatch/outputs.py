@@ -1,0 +1,50 @@
+"""The output folder, as every runner shares it: clip names, writability, partial clips."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from kbbatch.pipeline import CLIP_SUFFIX
+
+
+def output_names(sources: list[Path]) -> dict[Path, str]:
+    """Clip file names: the photo's stem, or its full name where two photos share a stem."""
+    stems: dict[str, int] = {}
+    for source in sources:
+        stems[source.stem.lower()] = stems.get(source.stem.lower(), 0) + 1
+    return {
+        s: (s.stem if stems[s.stem.lower()] == 1 else s.name) + CLIP_SUFFIX for s in sources
+    }
+
+
+class OutputFolderError(OSError):
+    pass
+
+
+def check_writable(folder: Path) -> None:
+    """Fail early, with the reason, when clips could never be written to a folder."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".kbbatch-write-test-"):
+            pass
+    except OSError as error:
+        raise OutputFolderError(f"{folder}: output folder is not writable "
+                                f"({error.strerror or error})") from error
+
+
+def remove_partial_clips(folder: Path) -> list[Path]:
+    """Temporary clips (`.NAME.XXXX.part.mp4`) left by a killed run; call with the folder
+    locked, so that no live run's file is taken."""
+    removed = []
+    for partial in folder.glob(".*.part*"):
+        partial.unlink(missing_ok=True)
+        removed.append(partial)
+    return removed
+
+
+def clip_name_note(source: Path, preferred: str, name: str) -> str | None:
+    if name == preferred:
+        return None
+    return (f"{source.name}: {preferred} already holds a clip of another photo; this one is "
+            f"named by its content: {name}")
