@@ -143,11 +143,9 @@ def worker_node() -> str:
     """This worker's machine and Ray node, for messages (loopback nodes share a host name)."""
     import ray
 
-    try:
-        node_id = ray.get_runtime_context().get_node_id()[:12]
-    except Exception:  # outside a Ray worker (a direct call): the host name says enough
+    if not ray.is_initialized():  # a direct call, outside Ray (asking would start Ray here)
         return os.uname().nodename
-    return f"{os.uname().nodename} (id {node_id})"
+    return f"{os.uname().nodename} (id {ray.get_runtime_context().get_node_id()[:12]})"
 
 
 def clip_on_worker(source: Path, output: Path, preset: Preset, options: ClipOptions,

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -313,7 +314,8 @@ def test_with_ray_shared_fs_a_photo_the_workers_cannot_see_fails_naming_node_and
 
     assert done.returncode == 1, done.stderr
     path = f"{seen_by_driver}/{photo.name}"
-    assert f"{path}: not found on Ray node " in done.stderr, done.stderr
+    assert re.search(rf"{re.escape(path)}: not found on Ray node \S+ \(id [0-9a-f]{{12}}\)",
+                     done.stderr), done.stderr
     assert "--ray-shared-fs needs the photos" in done.stderr
     report = json.loads((tmp_path / "out" / REPORT_NAME).read_text())
     assert [(c["source"], c["status"]) for c in report["clips"]] == [(path, "failed")]
