@@ -7,7 +7,9 @@ preset, the depth cache off so that every run does all the work. Each configurat
 one untimed clip per worker (worker start, imports, networks loaded, JIT), then the timed batch.
 Prints photos per minute, the mean clip time measured inside make_clip, Ray's overhead per photo
 (driver wall time per photo minus the clip time, with one worker: object store, scheduling,
-scratch files, writing the clip), and the bytes each clip moved (photo in, clip out).
+scratch files, writing the clip), and the bytes each clip moved between driver and worker (the
+task's arguments and result, pickled: photo in and clip out, or with --ray-shared-fs, the row
+`ray, 1 worker, shared fs`, only paths in and the ClipResult out).
 """
 
 from __future__ import annotations
@@ -64,7 +66,8 @@ def main() -> None:
                 shutil.copy(photo, folder / photo.name)
         rows = []
         for label, workers in (("local, 1 thread", 0), ("local, 2 threads", 0),
-                               ("ray, 1 worker", 1), ("ray, 2 workers", 2)):
+                               ("ray, 1 worker", 1), ("ray, 1 worker, shared fs", 1),
+                               ("ray, 2 workers", 2)):
             threads = 2 if label == "local, 2 threads" else 1
             options = ClipOptions(threads=threads, cache_depth=False)
             executor, start_s, moved = None, 0.0, []
@@ -73,7 +76,8 @@ def main() -> None:
                 ray.init(address="local", num_cpus=workers, include_dashboard=False,
                          log_to_driver=False, object_store_memory=200_000_000)
                 start_s = time.perf_counter() - clock
-                executor = RayExecutor(cpus_per_clip=1, bytes_moved=moved)
+                executor = RayExecutor(cpus_per_clip=1, bytes_moved=moved,
+                                       shared_fs=label.endswith("shared fs"))
             warm_s, _ = timed_batch(warm[max(1, workers)], work / f"out-warm-{len(rows)}", preset,
                                     options, executor)
             moved.clear()
@@ -87,16 +91,17 @@ def main() -> None:
           f"({preset.width_px}x{preset.height_px}, {preset.duration_s} s), depth cache off; "
           f"{os.cpu_count()} cores, load average {load_before:.1f} before, "
           f"{os.getloadavg()[0]:.1f} after\n")
-    print(f"{'executor':18} {'ray start s':>11} {'warm-up s':>9} {'batch s':>8} "
-          f"{'photos/min':>10} {'clip s':>7} {'s/photo':>8} {'overhead s':>14} "
-          f"{'MB moved/clip':>13}")
+    print(f"{'executor':25} {'ray start s':>11} {'warm-up s':>9} {'batch s':>8} "
+          f"{'photos/min':>10} {'clip s':>7} {'s/photo':>8} {'overhead s':>16} "
+          f"{'kB moved/clip':>13}")
     for label, start_s, warm_s, wall_s, clip_s, moved in rows:
         per_photo = wall_s / args.photos
-        overhead = (f"{per_photo - clip_s:5.2f} ({100 * (per_photo - clip_s) / clip_s:2.0f} %)"
-                    if label == "ray, 1 worker" else f"{'':14}")
-        mb = f"{sum(moved) / len(moved) / 1e6:13.2f}" if moved else f"{'':13}"
-        print(f"{label:18} {start_s:11.1f} {warm_s:9.1f} {wall_s:8.1f} "
-              f"{60 * args.photos / wall_s:10.1f} {clip_s:7.2f} {per_photo:8.2f} {overhead} {mb}")
+        overhead_s = per_photo - clip_s
+        overhead = (f"{overhead_s:6.3f} ({100 * overhead_s / clip_s:4.1f} %)"
+                    if label.startswith("ray, 1 worker") else f"{'':16}")
+        kb = f"{sum(moved) / len(moved) / 1e3:13.1f}" if moved else f"{'':13}"
+        print(f"{label:25} {start_s:11.1f} {warm_s:9.1f} {wall_s:8.1f} "
+              f"{60 * args.photos / wall_s:10.1f} {clip_s:7.2f} {per_photo:8.2f} {overhead} {kb}")
 
 
 if __name__ == "__main__":

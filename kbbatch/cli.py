@@ -146,6 +146,9 @@ executor_options = _shared(
                  show_default=True, help="CPUs a clip reserves on a Ray worker (threads)."),
     click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
                  show_default=True, help="GPUs (or a fraction) a clip reserves on a worker."),
+    click.option("--ray-shared-fs", is_flag=True,
+                 help="Every Ray node sees the photos and the output folder at the same paths: "
+                 "send paths, not bytes; workers write the clips in place."),
 )
 
 
@@ -197,7 +200,8 @@ def _executor(options: dict) -> RayExecutor | None:
     before any photo is touched."""
     name = options.pop("executor_name")
     executor = RayExecutor(options.pop("ray_address"), options.pop("ray_cpus_per_clip"),
-                           options.pop("ray_gpus_per_clip"))
+                           options.pop("ray_gpus_per_clip"),
+                           shared_fs=options.pop("ray_shared_fs"))
     if name == "local":
         return None
     try:

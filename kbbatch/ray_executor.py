@@ -1,18 +1,29 @@
-"""The batch on a Ray cluster: one remote task per photo, the journal and the files on the driver.
+"""The batch on a Ray cluster: one remote task per photo, the journal on the driver.
 
-No shared file system is assumed. The driver sends each photo's bytes (and its depth file, if
-any) through Ray's object store; a worker makes the clip in its own temporary folder with the
-same one-clip pipeline as the local executor and sends the clip's bytes back; the driver writes
-it atomically and the runner records it once in the journal. Networks are cached per worker
-process (kbbatch.models keeps one session per model file), and Ray reuses worker processes, so
-they load once per worker, not once per photo.
+By default no shared file system is assumed. The driver sends each photo's bytes (and its depth
+file, if any) through Ray's object store; a worker makes the clip in its own temporary folder
+with the same one-clip pipeline as the local executor and sends the clip's bytes back; the
+driver writes it atomically and the runner records it once in the journal.
+
+With shared_fs (`--ray-shared-fs`), every node sees the photos and the output folder at the same
+paths: the driver sends only the job's paths, the worker checks that it sees the same input
+files as the driver and makes the clip with make_clip straight to the job's output path (make_clip
+writes under a hidden temporary name and renames it whole), and only the ClipResult comes back;
+the driver checks that it sees the clip the worker made before the runner records it.
+
+Networks are cached per worker process (kbbatch.models keeps one session per model file), and
+Ray reuses worker processes, so they load once per worker, not once per photo.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
+import pickle
 import signal
 import tempfile
+import time
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
@@ -20,6 +31,7 @@ from pathlib import Path
 
 from kbbatch.depth.file import find_depth_file
 from kbbatch.images import atomic_output
+from kbbatch.journal import source_fingerprint
 from kbbatch.manifest import ManifestEntry
 from kbbatch.pipeline import (
     CLIP_SUFFIX,
@@ -40,6 +52,13 @@ SYSTEM_FAILURE_RETRIES = 3
 IN_FLIGHT_PER_SLOT = 2
 """Tasks submitted per clip slot of the cluster: enough to keep workers busy while the driver
 writes results, few enough that photos wait on the driver rather than in the object store."""
+
+SHARED_FS_HINT = ("--ray-shared-fs needs the photos, their depth files and the output folder at "
+                  "the same paths on every node")
+
+CLIP_VISIBLE_WAIT_S = 2.0
+"""How long the driver waits to see a clip a worker renamed on a shared file system (a network
+file system's attribute cache may lag the worker's rename by a moment)."""
 
 
 class RayUnavailableError(RuntimeError):
@@ -66,38 +85,80 @@ class PhotoPayload:
     clip_name: str
     entry: ManifestEntry | None
 
-    @property
-    def size_bytes(self) -> int:
-        return len(self.photo) + sum(len(data) for data in self.depth_files.values())
+
+@dataclass(frozen=True)
+class SharedPaths:
+    """What a worker needs of one photo when every node sees the same folders: the job as it
+    is, and each input file's size and time as the driver sees them (the journal's test of the
+    same file), to be found the same on the worker."""
+
+    job: ClipJob
+    inputs: dict[str, str]  # path -> "size:mtime_ns" on the driver (photo, depth files)
 
 
 @dataclass(frozen=True)
 class WorkerOutcome:
-    """A clip made on a worker: the result and the files it wrote (clip, depth pictures)."""
+    """A clip made on a worker: the result and the files it wrote (clip, depth pictures), or,
+    on a shared file system, no files and the clip's size and time as the worker saw them."""
 
     result: ClipResult
     files: dict[str, bytes]
     node: str
     pid: int
+    clip_stat: str | None = None  # "size:mtime_ns" of the clip written in place
+
+
+def depth_files_of(job: ClipJob) -> list[Path]:
+    """The depth map files a job's clip reads, as the driver sees them: the photo's sidecar
+    and the file its manifest entry names."""
+    files = []
+    sidecar = find_depth_file(job.source)
+    if sidecar is not None:
+        files.append(sidecar)
+    entry = job.entry
+    if entry is not None and entry.depth_file is not None and entry.depth_file.is_file():
+        files.append(entry.depth_file)
+    return files
 
 
 def payload_for(job: ClipJob) -> PhotoPayload:
     """Read a job's photo and depth files on the driver (a failure here is the worker's too)."""
-    depth_files = {}
-    sidecar = find_depth_file(job.source)
-    if sidecar is not None:
-        depth_files[sidecar.name] = sidecar.read_bytes()
-    entry = job.entry
-    if entry is not None and entry.depth_file is not None and entry.depth_file.is_file():
-        depth_files[entry.depth_file.name] = entry.depth_file.read_bytes()
+    depth_files = {path.name: path.read_bytes() for path in depth_files_of(job)}
     return PhotoPayload(job.source.name, job.source.read_bytes(), depth_files, job.output.name,
-                        entry)
+                        job.entry)
+
+
+def shared_paths_for(job: ClipJob) -> SharedPaths:
+    """A job's paths, made absolute (a worker's working folder is not the driver's), and its
+    input files' size and time on the driver (nothing is read)."""
+    entry = job.entry
+    if entry is not None:
+        entry = replace(entry, manifest=entry.manifest.absolute())
+    job = replace(job, source=job.source.absolute(), output=job.output.absolute(), entry=entry)
+    inputs = {str(path): source_fingerprint(path) for path in [job.source, *depth_files_of(job)]}
+    return SharedPaths(job, inputs)
+
+
+def worker_node() -> str:
+    """This worker's machine and Ray node, for messages (loopback nodes share a host name)."""
+    import ray
+
+    if not ray.is_initialized():  # a direct call, outside Ray (asking would start Ray here)
+        return os.uname().nodename
+    return f"{os.uname().nodename} (id {ray.get_runtime_context().get_node_id()[:12]})"
+
+
+def clip_on_worker(source: Path, output: Path, preset: Preset, options: ClipOptions,
+                   entry: ManifestEntry | None) -> ClipResult:
+    """make_clip as every Ray task runs it, after removing the frame stores of workers killed
+    mid-clip on this node."""
+    remove_stale_scratch()
+    return make_clip(source, output, preset, options, show_progress=False, entry=entry)
 
 
 def make_clip_from_bytes(payload: PhotoPayload, preset: Preset, options: ClipOptions
                          ) -> WorkerOutcome:
     """The unit of work on a worker: photo bytes in, clip bytes and the ClipResult out."""
-    remove_stale_scratch()  # of workers killed mid-clip on this node
     with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as scratch:
         inbox, outbox = Path(scratch) / "in", Path(scratch) / "out"
         inbox.mkdir()
@@ -110,13 +171,48 @@ def make_clip_from_bytes(payload: PhotoPayload, preset: Preset, options: ClipOpt
         if entry is not None and entry.depth_file is not None:
             data = dict(entry.data, depth=entry.depth_file.name)
             entry = replace(entry, data=data, manifest=inbox / entry.manifest.name)
-        result = make_clip(source, outbox / payload.clip_name, preset, options,
-                           show_progress=False, entry=entry)
+        result = clip_on_worker(source, outbox / payload.clip_name, preset, options, entry)
         files = {}
         if result.status == "done":
             files = {path.name: path.read_bytes() for path in outbox.iterdir() if path.is_file()}
         result.error = result.error and result.error.replace(str(inbox), "<worker>")
-    return WorkerOutcome(result, files, os.uname().nodename, os.getpid())
+    return WorkerOutcome(result, files, worker_node(), os.getpid())
+
+
+def make_clip_in_place(task: SharedPaths, preset: Preset, options: ClipOptions
+                       ) -> WorkerOutcome:
+    """The unit of work on a worker when every node sees the same folders: paths in, the clip
+    made at the job's output path (renamed there whole), only the ClipResult out."""
+    job, node = task.job, worker_node()
+    problem = shared_path_problem(task, node)
+    if problem is not None:
+        return WorkerOutcome(ClipResult(str(job.source), None, "failed", 0.0, error=problem), {},
+                             node, os.getpid())
+    result = clip_on_worker(job.source, job.output, preset, options, job.entry)
+    clip_stat = None
+    if result.status == "done":
+        with contextlib.suppress(OSError):  # renamed, then gone: the driver's check fails it
+            clip_stat = source_fingerprint(job.output)
+    return WorkerOutcome(result, {}, node, os.getpid(), clip_stat)
+
+
+def shared_path_problem(task: SharedPaths, node: str) -> str | None:
+    """Why this node cannot make the job in place, or None: an input file it does not see, or
+    sees changed, or no output folder (which make_clip would create here, unseen elsewhere)."""
+    for path, driver_stat in task.inputs.items():
+        try:
+            here = source_fingerprint(Path(path))
+        except OSError as error:
+            missing = error.errno in (errno.ENOENT, errno.ENOTDIR)
+            reason = "not found" if missing else f"unreadable ({error.strerror or error})"
+            return f"{path}: {reason} on Ray node {node}; {SHARED_FS_HINT}"
+        if here != driver_stat:
+            return (f"{path}: on Ray node {node} this file differs from the driver's (size and "
+                    f"time {here}, the driver's {driver_stat}); {SHARED_FS_HINT}")
+    folder = task.job.output.parent
+    if not folder.is_dir():
+        return f"{folder}: output folder not found on Ray node {node}; {SHARED_FS_HINT}"
+    return None
 
 
 def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
@@ -138,6 +234,37 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
         result.status, result.output = "failed", None
         result.error = f"{job.output}: the clip could not be written ({error.strerror or error})"
     return result
+
+
+def check_in_place(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
+    """A clip a worker renamed into the shared output folder: the driver must see that very
+    file (same size and time) at the job's path, else the folder is not shared after all."""
+    result = outcome.result
+    result.source = str(job.source)
+    if result.status != "done":
+        return result
+    deadline = time.monotonic() + CLIP_VISIBLE_WAIT_S
+    while True:
+        try:
+            seen = source_fingerprint(job.output)
+        except OSError:
+            seen = None
+        if seen is not None and seen == outcome.clip_stat:
+            result.output = str(job.output)
+            return result
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.1)
+    result.status, result.output = "failed", None
+    where = "no file" if seen is None else f"another file (size and time {seen})"
+    result.error = (f"{job.output}: the clip made on Ray node {outcome.node} is not what the "
+                    f"driver sees at this path ({where}); {SHARED_FS_HINT}")
+    return result
+
+
+def pickled_bytes(value: object) -> int:
+    """The size of what Ray sends for a value (its pickle, as Ray serializes task data)."""
+    return len(pickle.dumps(value, protocol=5))
 
 
 def start_ray(ray, address: str | None) -> None:
@@ -165,7 +292,10 @@ class RayExecutor:
     address: str | None = None
     cpus_per_clip: float = 1.0
     gpus_per_clip: float = 0.0
-    bytes_moved: list[int] | None = None  # per clip, photo + clip bytes, when asked for
+    bytes_moved: list[int] | None = None
+    """When given, each clip appends the bytes it moved between driver and worker: its task's
+    arguments and its result, pickled (the photo and the clip, unless shared_fs)."""
+    shared_fs: bool = False  # every node sees the folders: paths travel, not bytes
 
     def connect(self):
         """Ray, started or joined, and the remote clip function with this executor's resources."""
@@ -176,8 +306,20 @@ class RayExecutor:
             num_cpus=self.cpus_per_clip, num_gpus=self.gpus_per_clip,
             max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,
             max_calls=0,  # keep worker processes (and their networks) for the next photo
-        )(make_clip_from_bytes)
+        )(make_clip_in_place if self.shared_fs else make_clip_from_bytes)
         return ray, remote_clip
+
+    def submit(self, remote_clip, job: ClipJob, preset: Preset, options: ClipOptions
+               ) -> tuple[object, int]:
+        """Start a job's task: its object ref and the bytes sent (0 unless bytes_moved), or
+        the photo's failure where the driver cannot read (or stat) it."""
+        try:
+            task = shared_paths_for(job) if self.shared_fs else payload_for(job)
+        except OSError as error:
+            return unreadable_result(job, error), 0
+        arguments = (task, preset, self.worker_options(options))
+        sent = pickled_bytes(arguments) if self.bytes_moved is not None else 0
+        return remote_clip.remote(*arguments), sent
 
     def worker_options(self, options: ClipOptions) -> ClipOptions:
         return replace(options, threads=max(1, round(self.cpus_per_clip)))
@@ -185,7 +327,6 @@ class RayExecutor:
     def render(self, jobs: Iterable[ClipJob], preset: Preset, options: ClipOptions,
                show_progress: bool) -> Iterator[tuple[ClipJob, ClipResult]]:
         ray, remote_clip = self.connect()
-        worker_options = self.worker_options(options)
         slots = int(ray.cluster_resources().get("CPU", 1) // self.cpus_per_clip)
         in_flight = max(2, IN_FLIGHT_PER_SLOT * slots)
         pending: dict = {}  # object ref -> (job, bytes sent)
@@ -198,13 +339,11 @@ class RayExecutor:
                     if job is None:
                         exhausted = True
                         break
-                    try:
-                        payload = payload_for(job)
-                    except OSError as error:
-                        yield job, unreadable_result(job, error)
+                    ref, sent = self.submit(remote_clip, job, preset, options)
+                    if isinstance(ref, ClipResult):
+                        yield job, ref
                         continue
-                    ref = remote_clip.remote(payload, preset, worker_options)
-                    pending[ref] = (job, payload.size_bytes)
+                    pending[ref] = (job, sent)
                 if not pending:
                     continue
                 (ref,), _ = ray.wait(list(pending), num_returns=1)
@@ -225,8 +364,8 @@ class RayExecutor:
                                     f"{SYSTEM_FAILURE_RETRIES} retries "
                                     f"({type(error).__name__}: {summary})")
         if self.bytes_moved is not None:
-            self.bytes_moved.append(sent + sum(len(data) for data in outcome.files.values()))
-        return write_outcome(job, outcome)
+            self.bytes_moved.append(sent + pickled_bytes(outcome))
+        return check_in_place(job, outcome) if self.shared_fs else write_outcome(job, outcome)
 
 
 class RayClipPool:
@@ -258,18 +397,16 @@ class RayClipPool:
                options: ClipOptions, entry: ManifestEntry | None) -> Future:
         """Like ProcessPoolExecutor.submit(_local_render, ...), but the clip is made on Ray."""
         job, future = ClipJob(source, output, entry), Future()
-        try:
-            payload = payload_for(job)
-        except OSError as error:
-            future.set_result(unreadable_result(job, error))
+        ref, sent = self.executor.submit(self.remote_clip, job, preset, options)
+        if isinstance(ref, ClipResult):
+            future.set_result(ref)
             return future
-        ref = self.remote_clip.remote(payload, preset, self.executor.worker_options(options))
         self.pending.add(ref)
 
         def finished(_: object) -> None:
             self.pending.discard(ref)
             try:
-                future.set_result(self.executor.collect(self.ray, ref, job, payload.size_bytes))
+                future.set_result(self.executor.collect(self.ray, ref, job, sent))
             except BaseException as error:  # handed to the daemon, which fails the photo
                 future.set_exception(error)
 

@@ -29,3 +29,16 @@ def test_registries_name_their_members():
     with pytest.raises(DepthError, match="unknown depth backend 'nope'; available: auto, file"):
         get_backend(DepthOptions(backend="nope"), None)
     assert get_backend(DepthOptions(backend="ramp"), None).name == "ramp"
+
+
+RAY_OPTIONS = ("executor_name", "ray_address", "ray_cpus_per_clip", "ray_gpus_per_clip",
+               "ray_shared_fs")
+
+
+@pytest.mark.parametrize("command", [cli.render, cli.watch])
+def test_the_batch_and_the_daemon_take_the_same_ray_options(command, tmp_path):
+    assert set(RAY_OPTIONS) <= {p.name for p in command.params}
+    args = [str(tmp_path), "--executor", "ray"] + (["--out", str(tmp_path)] if command is cli.watch
+                                                   else [])
+    assert command.make_context("kbbatch", [*args, "--ray-shared-fs"]).params["ray_shared_fs"]
+    assert not command.make_context("kbbatch", args).params["ray_shared_fs"]  # copies by default

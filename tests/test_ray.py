@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -26,6 +27,7 @@ from kbbatch.encode import decode_frames, palindrome_order, probe
 from kbbatch.journal import JOURNAL_NAME
 from kbbatch.pipeline import SCRATCH_PREFIX, ClipOptions
 from kbbatch.presets import load_preset, with_overrides
+from kbbatch.ray_executor import RayExecutor
 
 from .conftest import shared_photos
 
@@ -190,7 +192,7 @@ def assert_complete_clips(output: Path, photos: list[Path]) -> None:
     """One whole clip per photo and nothing else: no partial or temporary file."""
     assert sorted(p.name for p in output.iterdir() if not p.name.startswith(".kbbatch-journal")
                   and p.name != REPORT_NAME) == sorted(f"{p.stem}.mp4" for p in photos)
-    preset = with_overrides(load_preset("preview"), duration_s=DURATION_S, fps=FPS)
+    preset = quick_preset()
     frames = len(palindrome_order(preset.frames_forward))
     for photo in photos:
         clip = output / f"{photo.stem}.mp4"
@@ -203,18 +205,46 @@ def psnr_db(first: np.ndarray, second: np.ndarray) -> float:
     return float("inf") if error == 0 else 10 * np.log10(255.0**2 / error)
 
 
-def test_ray_clips_equal_the_local_ones_and_a_corrupt_photo_fails_alone(
-        cluster, photo_folder, tmp_path):
+@pytest.fixture(scope="module")
+def reference(photo_folder, tmp_path_factory) -> tuple[Path, Path, list[Path]]:
+    """A folder of three photos and a corrupt one, its clips by the local executor (the
+    reference for every executor), and the three photos."""
     photos = sorted(photo_folder.iterdir())[:3]
-    folder = tmp_path / "in"
+    folder = tmp_path_factory.mktemp("reference") / "in"
     folder.mkdir()
     for photo in photos:
         (folder / photo.name).write_bytes(photo.read_bytes())
     (folder / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg" * 50)
-    preset = with_overrides(load_preset("preview"), duration_s=DURATION_S, fps=FPS)
-    local = run_folder(folder, tmp_path / "local", preset, ClipOptions(threads=1),
-                       show_progress=False)
-    assert [Path(r.source).name for r in local.failed] == ["broken.jpg"]
+    local = folder.parent / "local"
+    with pytest.MonkeyPatch.context() as env:  # the user's depth cache stays untouched
+        env.setenv("KBBATCH_CACHE", str(tmp_path_factory.mktemp("reference-depth-cache")))
+        report = run_folder(folder, local, quick_preset(), ClipOptions(threads=1),
+                            show_progress=False)
+    assert [Path(r.source).name for r in report.failed] == ["broken.jpg"]
+    return folder, local, photos
+
+
+def quick_preset():
+    return with_overrides(load_preset("preview"), duration_s=DURATION_S, fps=FPS)
+
+
+def assert_same_clips(ours: Path, theirs: Path, photos: list[Path]) -> None:
+    """Each photo's clip in ours equals the one in theirs: bit for bit, or every frame at
+    60 dB PSNR or more."""
+    preset = quick_preset()
+    for photo in photos:
+        mine, reference_clip = ours / f"{photo.stem}.mp4", theirs / f"{photo.stem}.mp4"
+        if mine.read_bytes() == reference_clip.read_bytes():
+            continue
+        width, height = preset.width_px, preset.height_px
+        for a, b in zip(decode_frames(mine, width, height),
+                        decode_frames(reference_clip, width, height), strict=True):
+            assert psnr_db(a, b) >= 60.0, photo.name
+
+
+def test_ray_clips_equal_the_local_ones_and_a_corrupt_photo_fails_alone(
+        cluster, reference, tmp_path):
+    folder, local, photos = reference
 
     done = run_kbbatch(cluster, folder, tmp_path / "ray", "--ray-address", cluster.address)
 
@@ -226,15 +256,76 @@ def test_ray_clips_equal_the_local_ones_and_a_corrupt_photo_fails_alone(
     assert_complete_clips(tmp_path / "ray", photos)
     assert {s: a for s, (_, a) in journal_rows(tmp_path / "ray").items()} == {
         p.name: 1 for p in photos} | {"broken.jpg": 1}
-    for photo in photos:
-        ours = tmp_path / "ray" / f"{photo.stem}.mp4"
-        theirs = tmp_path / "local" / f"{photo.stem}.mp4"
-        if ours.read_bytes() == theirs.read_bytes():
-            continue
-        width, height = preset.width_px, preset.height_px
-        for a, b in zip(decode_frames(ours, width, height), decode_frames(theirs, width, height),
-                        strict=True):
-            assert psnr_db(a, b) >= 60.0, photo.name
+    assert_same_clips(tmp_path / "ray", local, photos)
+
+
+SHARED_FS_BYTES_PER_CLIP = 16_000
+"""Paths, settings and a ClipResult: a few kB. Any photo or clip here is larger."""
+
+
+def test_with_a_shared_file_system_only_paths_travel_and_the_clips_equal_the_local_ones(
+        cluster, reference, tmp_path, monkeypatch):
+    """The driver in this process, so that the executor's bytes_moved can be read."""
+    folder, local, photos = reference
+    for name, value in cluster.env.items():
+        if name.startswith("RAY_"):
+            monkeypatch.setenv(name, value)
+    moved: list[int] = []
+    executor = RayExecutor(cluster.address, shared_fs=True, bytes_moved=moved)
+    try:
+        report = run_folder(folder, tmp_path / "ray", quick_preset(), ClipOptions(threads=1),
+                            show_progress=False, executor=executor)
+    finally:
+        ray.shutdown()
+
+    states = {Path(r.source).name: r.status for r in report.results}
+    assert states == {p.name: "done" for p in photos} | {"broken.jpg": "failed"}
+    assert_complete_clips(tmp_path / "ray", photos)
+    assert {s: a for s, (_, a) in journal_rows(tmp_path / "ray").items()} == {
+        p.name: 1 for p in photos} | {"broken.jpg": 1}  # each made once
+    assert_same_clips(tmp_path / "ray", local, photos)
+    smallest_file = min(p.stat().st_size for p in [*photos, *(tmp_path / "ray").glob("*.mp4")])
+    assert len(moved) == len(photos) + 1  # the corrupt photo, too, failed on a worker
+    assert max(moved) < min(SHARED_FS_BYTES_PER_CLIP, smallest_file), moved
+
+
+def test_with_ray_shared_fs_a_photo_the_workers_cannot_see_fails_naming_node_and_path(
+        cluster, photo_folder, tmp_path):
+    """The photo's folder is /proc/self/fd/N, a directory the driver holds open: the driver
+    lists and reads it, and on every worker that path names nothing (as a folder on the
+    driver's machine alone would)."""
+    folder = tmp_path / "driver-only"
+    folder.mkdir()
+    photo = sorted(photo_folder.iterdir())[0]
+    (folder / photo.name).write_bytes(photo.read_bytes())
+    handle = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fd = DRIVER_ONLY_FD
+        os.dup2(handle, fd)
+        seen_by_driver = Path(f"/proc/self/fd/{fd}")
+        env = dict(cluster.env, RAY_ADDRESS=cluster.address)
+        done = subprocess.run(kbbatch_command(seen_by_driver, tmp_path / "out", "--ray-shared-fs"),
+                              env=env, capture_output=True, text=True, timeout=150,
+                              pass_fds=(fd,))
+    finally:
+        os.close(handle)
+        with contextlib.suppress(OSError):
+            os.close(DRIVER_ONLY_FD)
+
+    assert done.returncode == 1, done.stderr
+    path = f"{seen_by_driver}/{photo.name}"
+    assert re.search(rf"{re.escape(path)}: not found on Ray node \S+ \(id [0-9a-f]{{12}}\)",
+                     done.stderr), done.stderr
+    assert "--ray-shared-fs needs the photos" in done.stderr
+    report = json.loads((tmp_path / "out" / REPORT_NAME).read_text())
+    assert [(c["source"], c["status"]) for c in report["clips"]] == [(path, "failed")]
+    assert not list((tmp_path / "out").glob("*.mp4"))
+    assert journal_rows(tmp_path / "out") == {photo.name: ("failed", 1)}
+
+
+DRIVER_ONLY_FD = 217
+"""A descriptor number no Ray worker is likely to hold (if one did, as a non-directory, the
+path still names nothing there)."""
 
 
 def done_clips(output: Path) -> set[str]:
@@ -293,13 +384,17 @@ def test_ctrl_c_cancels_the_outstanding_clips_and_exits_non_zero(cluster, photo_
     assert cluster.second_node_clip_task() is None
 
 
-def test_the_daemon_on_ray_makes_every_arrival_and_stops_on_sigterm(
+def test_the_daemon_on_ray_with_a_shared_fs_makes_every_arrival_and_stops_on_sigterm(
         cluster, photo_folder, tmp_path):
+    """With --ray-shared-fs (the inbox and outbox are seen by both nodes): the daemon's pool
+    hands its jobs to the executor as the batch does, whose copying mode the batch tests
+    cover, so this one covers the clips written in place by workers for the daemon."""
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     photos = sorted(photo_folder.iterdir())[:3]
     command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
-               "-p", "preview", "--settle", "0.5", "--jobs", "2", "--executor", "ray"]
+               "-p", "preview", "--settle", "0.5", "--jobs", "2", "--executor", "ray",
+               "--ray-shared-fs"]
     env = dict(cluster.env, RAY_ADDRESS=cluster.address)
     daemon = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                               text=True)
