@@ -52,6 +52,13 @@ deviations of the clean background's own colours (its texture); the rest is the 
 BACKGROUND_SLACK = 8.0
 """... plus this many 8-bit levels (noise, and the estimate's own error on flat backgrounds)."""
 
+EDGE_SLACK = 3.0
+"""Right at the object's edge the background colour may differ from its clean estimate by
+only this many levels; the allowance grows to the full texture spread across the band. What
+lies beside an edge is the object's soft tail, rim light or colour fringe far more often than
+the background's texture, and left in the background layer it stays behind as a line tracing
+the object's old outline (and the fill copies that line as streaks)."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -129,7 +136,8 @@ def _into_gamut(colour: np.ndarray, anchor: np.ndarray) -> np.ndarray:
 
 def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of image over the weighted pixels in a box, and the summed weight there."""
+    """Mean of image over the weighted pixels in a box (the side of 2 radius + 1), and the
+    summed weight there: a local colour model of some pixels only."""
     size = (2 * radius + 1, 2 * radius + 1)
     total = cv2.blur(weight, size)
     weighted = cv2.blur(image * weight[..., None], size)
@@ -234,7 +242,10 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # cannot take (out of its gamut) is dropped: the start view then differs from the photo
     # there, which is less visible than a ghost.
     back_clean = np.clip(back_here, 0, 255)
-    tolerance = BACKGROUND_SPREAD * back_spread[band][:, None] + BACKGROUND_SLACK
+    texture = BACKGROUND_SPREAD * back_spread[band][:, None] + BACKGROUND_SLACK
+    # the allowance grows with the square of the distance: an object's soft tail fades fast
+    from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
+    tolerance = EDGE_SLACK + (texture - EDGE_SLACK) * from_edge
     kept = np.clip(back_clean + np.clip(second - back_clean, -tolerance, tolerance), 0, 255)
     strays = np.any(np.abs(kept - second) > 0.5, axis=-1, keepdims=True) & ~mostly_front
     first = np.where(strays, _into_gamut(_remainder(pixel, np.round(kept), 1 - share),
@@ -246,7 +257,12 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
                               0, 255))
     second = np.round(np.clip(second, 0, 255))
     front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
-    back_band = np.where(a <= 0.0, pixel, np.where(mostly_front, first, second))
+    # A band pixel the matte left wholly to the background is held to the same allowance: near
+    # the edge, what strays further is dropped (the start view loses a faint rim) rather than
+    # left behind.
+    whole = np.clip(back_clean + np.clip(pixel - back_clean, -tolerance, tolerance), 0, 255)
+    whole = np.where(has_background[band][:, None], np.round(whole), pixel)
+    back_band = np.where(a <= 0.0, whole, np.where(mostly_front, first, second))
 
     alpha = (near_mask > 0.5).astype(np.float32)
     alpha[band] = matte

@@ -46,6 +46,18 @@ SALIENT_THRESHOLD = 0.5
 MASK_ERODE_PX = 2
 """Masks are eroded slightly before adjustment, as the paper does, at the working size."""
 
+SNAP_BAND_PX = 20
+"""A mask's outline may move by up to this (working px) onto the photo's own colour edge: the
+networks see the photo at 257 to 416 px, so their outlines are several pixels off, and a card
+that overshoots its person carries a skirt of wall along with them as a halo."""
+
+HAIR_FRACTION = 0.3
+"""Outlines are not snapped in the top of a person box, this share of its height: hair and
+a light background mix into no colour edge, and snapping cut hair away into holes."""
+
+SNAP_SAMPLES = 64
+"""Offsets (within twice the band) at which sure pixels are compared with a band pixel."""
+
 FRAGMENT_MIN_FRACTION = 0.1
 """A piece of an instance's mask smaller than this fraction of its largest piece is dropped:
 no loose sliver of a suit or shard of curtain becomes a card of its own."""
@@ -71,6 +83,9 @@ no cleaning removes and no other card takes..."""
 
 HEAD_WIDTH_FRACTION = 0.6
 """... in the central part of the box, this share of its width."""
+
+GROUP_SLIVER_PX = 12
+"""Within a group card, background strips narrower than this (working px) join the card."""
 
 GROUP_TOUCH_PX = 12
 """Cards whose masks come within twice this distance (working px) touch: overlapping people, or
@@ -209,6 +224,47 @@ def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.nda
     return keep[labels]
 
 
+def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """mask with its outline moved onto the photo's colour edge, within SNAP_BAND_PX.
+
+    Each pixel near the outline joins the side with the more alike sure pixel nearby (the
+    mask shrunk, the rest grown, by the band; Lab colour, among SNAP_SAMPLES offsets): the
+    nearest sample, not a side's mean, since a side is often several colours (a dark suit,
+    a white cuff, a hand). Only pieces joined to the sure inside are kept. Where a side has no
+    sure pixel in reach, the outline stays as it was.
+    """
+    binary = mask.astype(np.uint8)
+    window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SNAP_BAND_PX + 1,) * 2)
+    inside = cv2.erode(binary, window) > 0
+    outside = cv2.dilate(binary, window) == 0
+    band = ~inside & ~outside
+    if not inside.any() or not outside.any():
+        return mask.astype(bool)
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
+    ys, xs = np.nonzero(band)
+    height, width = mask.shape
+    nearest = {True: np.full(ys.size, np.inf, np.float32),
+               False: np.full(ys.size, np.inf, np.float32)}
+    reach = 2 * SNAP_BAND_PX  # every band pixel can see sure pixels of both sides
+    offsets = np.random.default_rng(0).integers(-reach, reach + 1, (SNAP_SAMPLES, 2))
+    colour = lab[ys, xs]
+    for dy, dx in offsets:
+        sy, sx = np.clip(ys + dy, 0, height - 1), np.clip(xs + dx, 0, width - 1)
+        distance = np.sum((lab[sy, sx] - colour) ** 2, axis=-1)
+        for side, sure in ((True, inside), (False, outside)):
+            here = sure[sy, sx]
+            nearest[side][here] = np.minimum(nearest[side][here], distance[here])
+    modelled = np.isfinite(nearest[True]) & np.isfinite(nearest[False])
+    joins = np.where(modelled, nearest[True] < nearest[False], mask[ys, xs].astype(bool))
+    snapped = inside.copy()
+    snapped[ys[joins], xs[joins]] = True
+    count, labels = cv2.connectedComponents(snapped.astype(np.uint8), connectivity=8)
+    joined = np.zeros(count, bool)
+    joined[np.unique(labels[inside])] = True
+    joined[0] = False
+    return joined[labels]
+
+
 def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     """A mask without slivers, speckle holes or small loose pieces.
 
@@ -230,7 +286,8 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     return drop_fragments(filled, keep)
 
 
-def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None,
+                   min_px: int = FRAGMENT_MIN_PX) -> np.ndarray:
     """mask without pieces under FRAGMENT_MIN_FRACTION of its largest or FRAGMENT_MIN_PX;
     the piece holding most of keep (the face) always stays."""
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
@@ -238,7 +295,7 @@ def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarr
     if count <= 1:
         return mask.astype(bool)
     areas = stats[:, cv2.CC_STAT_AREA]
-    minimum = max(FRAGMENT_MIN_FRACTION * areas[1:].max(), FRAGMENT_MIN_PX)
+    minimum = max(FRAGMENT_MIN_FRACTION * areas[1:].max(), min_px)
     kept = areas >= minimum
     if keep is not None:
         in_face = np.bincount(labels[keep & mask], minlength=count)
@@ -282,8 +339,20 @@ def group_cards(masks: list[np.ndarray], disparities: list[float]
         for k in group:
             owner[masks[k] & (owner < 0)] = k
         mask = (owner >= 0) | bridge_gaps(owner, 2 * GROUP_TOUCH_PX)
+        if len(group) > 1:
+            mask |= narrow_background(mask)
         cards.append((mask, max(disparities[k] for k in group)))
     return cards
+
+
+def narrow_background(mask: np.ndarray) -> np.ndarray:
+    """Background pixels beside a group card in a strip narrower than GROUP_SLIVER_PX: what
+    the row and column bridges left between people (a slit between two arms), which would
+    otherwise stand out of the group as a torn shard of wall."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (GROUP_SLIVER_PX + 1,) * 2)
+    background = (~mask).astype(np.uint8)
+    wide = cv2.morphologyEx(background, cv2.MORPH_OPEN, kernel, borderValue=1) > 0
+    return ~mask & ~wide
 
 
 def bridge_gaps(owner: np.ndarray, max_gap_px: int) -> np.ndarray:
@@ -346,8 +415,14 @@ def find_instances(image: np.ndarray) -> list[Instance]:
     heads = [head_region(d.box, shape) if d.class_name == "person" else None for d in objects]
     kept = []
     for detection, mask, head in zip(objects, masks, heads, strict=True):
-        mask = clean_mask(mask, keep=head)
-        face = mask & head if head is not None else None
+        snapped = snap_to_colour_edges(mask, image)
+        if detection.class_name == "person":  # hair is no colour edge: the head is kept
+            x0, y0, x1, y1 = detection.box
+            hair = _box_mask(shape, (x0, y0, x1, y0 + HAIR_FRACTION * (y1 - y0)))
+            snapped = np.where(hair, mask, snapped)
+        mask = clean_mask(snapped, keep=head)
+        # the face is its main pieces (a stray pixel of it is no face to keep whole)
+        face = drop_fragments(mask & head, min_px=0) if head is not None else None
         mask = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
         if face is not None:  # the face is never shaved: it stays whole on its card
             mask |= face

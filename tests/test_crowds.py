@@ -140,3 +140,56 @@ def test_real_crowd_has_no_fragments_and_no_face_taken_by_another_card(monkeypat
         for other in instances:
             if other is not person:
                 assert not (other.mask & person.face).any(), "a face taken by another card"
+
+
+def test_a_mask_snaps_onto_the_photos_colour_edge():
+    """The networks see the photo at 257 to 416 px: a person's mask overshot his shoulder by
+    10 to 20 working px on a real portrait, and the card carried that skirt of wall along as
+    a halo. The outline moves onto the colour edge, and only there."""
+    from kbbatch.segment import SNAP_BAND_PX, snap_to_colour_edges
+
+    height, width = 200, 240
+    rng = np.random.default_rng(7)
+    photo = np.clip(np.array([225.0, 215.0, 190.0]) + rng.normal(0, 6, (height, width, 3)),
+                    0, 255)
+    truth = np.zeros((height, width), bool)
+    truth[50:170, 60:170] = True
+    photo[truth] = np.clip(np.array([30.0, 30.0, 45.0]) + rng.normal(0, 6, (truth.sum(), 3)),
+                           0, 255)
+    photo = cv2.GaussianBlur(photo.astype(np.uint8), (0, 0), 1.0)
+    rough = np.zeros_like(truth)
+    rough[40:176, 48:164] = True  # overshoots top, left, bottom; falls short on the right
+    snapped = snap_to_colour_edges(rough, photo)
+    assert (rough ^ truth).sum() > 2500
+    assert (snapped ^ truth).sum() < 0.1 * (rough ^ truth).sum()
+    # A wall pixel beyond the band is never taken, however dark.
+    far = np.zeros_like(truth)
+    far[50:60, 60 - SNAP_BAND_PX - 20:60 - SNAP_BAND_PX - 12] = True
+    dark = photo.copy()
+    dark[far] = 20
+    assert not snap_to_colour_edges(rough, dark)[far].any()
+
+
+def test_real_cards_follow_the_peoples_outlines(monkeypatch):
+    """On the two-people portrait the network masks' outlines ran through flat wall (median
+    lightness gradient 68 and 95 along them, a third of them on no edge at all); snapped,
+    they lie on the suits' edges."""
+    from kbbatch.segment import find_instances
+
+    real_models_or_skip(monkeypatch)
+    photo = at_working_size(read_image(SHARED / "photos" /
+                                       "03_portrait_two_people_obama_biden.jpg"))
+    people = [i for i in find_instances(photo) if i.class_name == "person"]
+    assert len(people) == 2
+    lightness = cv2.cvtColor(photo, cv2.COLOR_RGB2LAB)[..., 0].astype(np.float32)
+    gradient = np.hypot(cv2.Sobel(lightness, cv2.CV_32F, 1, 0),
+                        cv2.Sobel(lightness, cv2.CV_32F, 0, 1))
+    gradient = cv2.dilate(gradient, np.ones((5, 5), np.uint8))  # an edge within 2 px
+    for person in people:
+        mask = person.mask.astype(np.uint8)
+        outline = person.mask & ~cv2.erode(mask, np.ones((3, 3), np.uint8)).astype(bool)
+        outline[:2] = outline[-2:] = False  # the photo's own border is no outline
+        outline[:, :2] = outline[:, -2:] = False
+        along = gradient[outline]
+        assert np.median(along) > 120, np.median(along)
+        assert (along < 40).mean() < 0.25, (along < 40).mean()
