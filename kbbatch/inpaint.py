@@ -425,9 +425,23 @@ def extend_at_view(
         mask = (small_hole | blocked).astype(np.uint8) * 255
         small_colour = inpainter(image, mask).astype(np.float32)
     depth_full = cv2.resize(small_depth, (width, height), interpolation=cv2.INTER_NEAREST)
-    colour_full = cv2.resize(small_colour, (width, height), interpolation=cv2.INTER_LINEAR)
+    # Enlarged from filled and background pixels only: a plain bilinear enlargement blends the
+    # near side's colour (a magenta star, a dark suit, a soft edge) into the fill's border.
+    usable = (small_hole | ~(blocked | small_uncovered)).astype(np.float32)
+    colour_full = _enlarged_from(small_colour, usable, (width, height))
     colour_full = np.clip(colour_full + 0.5, 0, 255).astype(np.uint8)
     return back_project(colour_full, depth_full, view, keep=hole), hole_count
+
+
+def _enlarged_from(colour: np.ndarray, usable: np.ndarray, size: tuple[int, int]
+                   ) -> np.ndarray:
+    """colour enlarged bilinearly to size from its usable pixels alone (normalised
+    interpolation); where no usable pixel is near, its nearest pixel's colour."""
+    weight = cv2.resize(usable, size, interpolation=cv2.INTER_LINEAR)
+    weighted = cv2.resize(colour * usable[..., None], size, interpolation=cv2.INTER_LINEAR)
+    nearest = cv2.resize(colour, size, interpolation=cv2.INTER_NEAREST)
+    return np.where(weight[..., None] > 1e-3, weighted / np.maximum(weight, 1e-3)[..., None],
+                    nearest)
 
 
 def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:

@@ -59,6 +59,10 @@ lies beside an edge is the object's soft tail, rim light or colour fringe far mo
 the background's texture, and left in the background layer it stays behind as a line tracing
 the object's old outline (and the fill copies that line as streaks)."""
 
+BACKGROUND_REACH_WIDER = 4
+"""Where no clean background pixel lies near a band pixel, its colour is estimated over a box
+this many times wider."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -185,10 +189,21 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     band = cv2.resize(small_band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     colour = photo.astype(np.float32)
     box = max(1, round(2 * band_px * scale))
-    back_mean, back_weight = _normalised_blur(
-        colour, cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR), box)
-    back_square, _ = _normalised_blur(
-        colour * colour, cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR), box)
+    back_weights = cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR)
+    back_mean, back_weight = _normalised_blur(colour, back_weights, box)
+    back_square, _ = _normalised_blur(colour * colour, back_weights, box)
+    # Where no clean background lies within the box (a narrow wedge between two spikes, a gap
+    # between fingers), a wider one: kept whole instead, the wedge's mixed colour stayed
+    # behind as a tinted ghost of the object.
+    missing = back_weight <= 1e-3
+    if missing[band].any():
+        wide_mean, wide_weight = _normalised_blur(colour, back_weights,
+                                                  BACKGROUND_REACH_WIDER * box)
+        wide_square, _ = _normalised_blur(colour * colour, back_weights,
+                                          BACKGROUND_REACH_WIDER * box)
+        back_mean = np.where(missing[..., None], wide_mean, back_mean)
+        back_square = np.where(missing[..., None], wide_square, back_square)
+        back_weight = np.where(missing, wide_weight, back_weight)
     back_spread = np.sqrt(np.maximum(back_square - back_mean * back_mean, 0.0)).mean(axis=-1)
     front_mean, front_weight = _normalised_blur(
         colour, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR), box)
@@ -220,6 +235,13 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     along = np.sum((pixel - back_here) * contrast, axis=-1) / np.maximum(spread, 1e-6)
     trust = spread / (spread + COLOUR_CONTRAST**2)
     trust = np.where(has_background[band] & has_foreground[band], trust, 0.0)
+    # Beyond the depth edge, a background's own texture moves a pixel along the line to the
+    # object's colour too (a red sail towards magenta): only what exceeds that spread is the
+    # object's, or the object carries a faint skirt of background texture as its soft edge.
+    texture_share = BACKGROUND_SPREAD * back_spread[band] / np.sqrt(np.maximum(spread, 1e-6))
+    beyond_edge = outside_px[band] > 0
+    along = np.where(beyond_edge, (along - texture_share) / np.maximum(1 - texture_share, 0.1),
+                     along)
     matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[band]
     matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
     matte = np.clip(matte, 0.0, 1.0)

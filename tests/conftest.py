@@ -2,12 +2,38 @@
 
 from __future__ import annotations
 
+import ctypes
+import fcntl
+import socket
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from kbbatch.presets import load_preset, with_overrides
+
+CLONE_NEWNET = 0x40000000
+SIOCGIFFLAGS, SIOCSIFFLAGS, IFF_UP = 0x8913, 0x8914, 0x1
+
+
+def isolate_network() -> bool:
+    """Put the test run (and every process it starts) in a network namespace of its own that
+    has nothing but the loopback device. Ray rewrites 127.0.0.1 into the host's own interface
+    address when it connects or starts a node; here that is 127.0.0.1 again, so the tests'
+    clusters, daemons and web servers can only ever talk over loopback. Needs root (as on the
+    development machines and CI); elsewhere the tests run as they are."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.unshare(CLONE_NEWNET) != 0:
+        return False
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        request = struct.pack("16sH", b"lo", 0)
+        flags = struct.unpack("16sH", fcntl.ioctl(probe, SIOCGIFFLAGS, request))[1]
+        fcntl.ioctl(probe, SIOCSIFFLAGS, struct.pack("16sH", b"lo", flags | IFF_UP))
+    return True
+
+
+NETWORK_ISOLATED = isolate_network()  # at import: before any test starts a thread or a process
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 PHOTOS = SHARED / "photos"
