@@ -59,6 +59,10 @@ lies beside an edge is the object's soft tail, rim light or colour fringe far mo
 the background's texture, and left in the background layer it stays behind as a line tracing
 the object's old outline (and the fill copies that line as streaks)."""
 
+BACKGROUND_REACH_WIDER = 4
+"""Where no clean background pixel lies near a band pixel, its colour is estimated over a box
+this many times wider."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -188,6 +192,18 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     back_weights = cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR)
     back_mean, back_weight = _normalised_blur(colour, back_weights, box)
     back_square, _ = _normalised_blur(colour * colour, back_weights, box)
+    # Where no clean background lies within the box (a narrow wedge between two spikes, a gap
+    # between fingers), a wider one: kept whole instead, the wedge's mixed colour stayed
+    # behind as a tinted ghost of the object.
+    missing = back_weight <= 1e-3
+    if missing[band].any():
+        wide_mean, wide_weight = _normalised_blur(colour, back_weights,
+                                                  BACKGROUND_REACH_WIDER * box)
+        wide_square, _ = _normalised_blur(colour * colour, back_weights,
+                                          BACKGROUND_REACH_WIDER * box)
+        back_mean = np.where(missing[..., None], wide_mean, back_mean)
+        back_square = np.where(missing[..., None], wide_square, back_square)
+        back_weight = np.where(missing, wide_weight, back_weight)
     back_spread = np.sqrt(np.maximum(back_square - back_mean * back_mean, 0.0)).mean(axis=-1)
     front_mean, front_weight = _normalised_blur(
         colour, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR), box)
