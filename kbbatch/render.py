@@ -29,6 +29,11 @@ CRACK_DISPARITY_PX = 1.0
 """A pixel whose two opposite neighbours are nearer by this much disparity is background shining
 through a crack in a magnified foreground (the paper's z-buffer filter): it is emptied."""
 
+FILL_CRACK_PX = 2
+"""An empty pixel with covered pixels this close on both sides of its row or column is a crack
+in one surface (a magnified slanted ground spreads its rows apart) and takes its colour from
+those sides; the long walk to the farthest covered pixel could fetch the sky into the ground."""
+
 MIN_SPLAT_WEIGHT = 1e-3
 """Bilinear weights below this neither raise the z-buffer nor colour a pixel."""
 
@@ -569,19 +574,36 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, touched, image):
         for xx in range(width):
             if front[yy, xx] > 0:
                 continue
-            best_inv = np.float32(np.inf)
-            best_y = -1
-            best_x = -1
-            for step_y, step_x in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+            # the nearest covered pixel left, right, above and below, and how far each is
+            found_y = np.full(4, -1, np.int64)
+            found_x = np.full(4, -1, np.int64)
+            near = np.zeros(4, np.bool_)
+            for k, (step_y, step_x) in enumerate(((0, -1), (0, 1), (-1, 0), (1, 0))):
                 cy = yy + step_y
                 cx = xx + step_x
+                steps = 1
                 while 0 <= cy < height and 0 <= cx < width and front[cy, cx] == 0:
                     cy += step_y
                     cx += step_x
-                if 0 <= cy < height and 0 <= cx < width and front[cy, cx] < best_inv:
-                    best_inv = front[cy, cx]
-                    best_y = cy
-                    best_x = cx
+                    steps += 1
+                if 0 <= cy < height and 0 <= cx < width:
+                    found_y[k], found_x[k] = cy, cx
+                    near[k] = steps <= FILL_CRACK_PX
+            # A crack (covered on both sides of a row or a column within FILL_CRACK_PX) is
+            # closed from those two sides; a hole from the farthest of all four.
+            crack_h = near[0] and near[1]
+            crack_v = near[2] and near[3]
+            best_inv = np.float32(np.inf)
+            best_y = -1
+            best_x = -1
+            for k in range(4):
+                if found_y[k] < 0 or ((crack_h or crack_v)
+                                      and not (crack_h if k < 2 else crack_v)):
+                    continue
+                if front[found_y[k], found_x[k]] < best_inv:
+                    best_inv = front[found_y[k], found_x[k]]
+                    best_y = found_y[k]
+                    best_x = found_x[k]
             for c in range(3):
                 image[yy, xx, c] = image[best_y, best_x, c] if best_y >= 0 else 0
 

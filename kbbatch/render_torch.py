@@ -25,6 +25,7 @@ import torch
 from kbbatch.camera import View
 from kbbatch.render import (
     CRACK_DISPARITY_PX,
+    FILL_CRACK_PX,
     MIN_SPLAT_WEIGHT,
     NEAR_PLANE,
     OPAQUE_ALPHA,
@@ -301,7 +302,7 @@ def _fill_from_background(image: torch.Tensor, front: torch.Tensor) -> torch.Ten
     hole_x = holes % width
     hole_y = holes // width % height
     flat_front = front.view(-1)
-    candidates_front, candidates_index = [], []
+    candidates_front, candidates_index, candidates_near = [], [], []
     for dim, reverse in ((2, False), (2, True), (1, False), (1, True)):
         length = front.shape[dim]
         shape = [1, 1, 1]
@@ -321,6 +322,15 @@ def _fill_from_background(image: torch.Tensor, front: torch.Tensor) -> torch.Ten
         index = torch.where(valid, index, 0)
         candidates_front.append(torch.where(valid, flat_front[index], float("inf")))
         candidates_index.append(torch.where(valid, index, -1))
+        here = hole_x if dim == 2 else hole_y
+        candidates_near.append(valid & ((at - here).abs() <= FILL_CRACK_PX))
+    # A crack (covered on both sides of a row or a column, close by) is closed from those two
+    # sides, as render's finishing fill does.
+    crack_h = candidates_near[0] & candidates_near[1]
+    crack_v = candidates_near[2] & candidates_near[3]
+    crack = crack_h | crack_v
+    for k, in_pair in enumerate((crack_h, crack_h, crack_v, crack_v)):
+        candidates_front[k] = torch.where(crack & ~in_pair, float("inf"), candidates_front[k])
     choice = torch.stack(candidates_front).argmin(dim=0, keepdim=True)  # ties: the first
     source = torch.stack(candidates_index).gather(0, choice)[0]
     flat = image.view(-1, 3).clone()

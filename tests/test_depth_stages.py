@@ -173,3 +173,24 @@ def test_scene_context_segments_a_photo_once(monkeypatch):
     context = SceneContext(textured_image(60, 80, seed=1))
     assert context.instances == [] and context.instances == []
     assert len(calls) == 1
+
+
+def test_a_frame_or_a_lattice_is_no_upright_card():
+    """A salient region that encloses much background (a bridge's tunnel of frames) or fills
+    little of its hull (a launch tower's lattice) was one flat card at its nearest depth: its
+    far parts slid over the scene and tore it (real photos 23 and 24). A solid one stays."""
+    import cv2
+
+    from kbbatch.depth.popup import stands_up
+
+    solid = np.zeros((200, 300), np.uint8)
+    cv2.ellipse(solid, (150, 120), (60, 70), 0, 0, 360, 1, -1)
+    frame = np.zeros_like(solid)
+    cv2.rectangle(frame, (60, 30), (240, 199), 1, 14)  # a frame standing on the ground
+    lattice = np.zeros_like(solid)
+    cv2.line(lattice, (40, 195), (240, 195), 1, 2)
+    for offset in range(0, 200, 25):  # thin struts rising from one beam
+        cv2.line(lattice, (40 + offset, 195), (60 + offset, 20), 1, 2)
+    assert stands_up(solid.astype(bool))
+    assert not stands_up(frame.astype(bool))
+    assert not stands_up(lattice.astype(bool))

@@ -203,3 +203,22 @@ def test_points_within_the_soft_range_blend_and_the_pixel_keeps_the_nearest_dept
     np.testing.assert_allclose(rendering.weight[10, 20], 3.0, rtol=1e-5)
     np.testing.assert_allclose(rendering.colour[10, 20], [100.0, 0.0, 0.0], atol=1e-3)
     np.testing.assert_allclose(rendering.depth[10, 20], 100.0, rtol=1e-5)
+
+
+def test_cracks_in_a_magnified_ground_are_closed_from_the_ground_itself():
+    """Seen closer, a slanted ground spreads its rows apart and the frame has one-pixel cracks
+    across it. The finishing fill once took the farthest covered pixel along each crack's
+    row, which was the sky beside the ground: thin light lines across a launch pad (a real
+    photo). A crack is closed from the pixels above and below it."""
+    rows = np.arange(H, dtype=np.float32)[:, None]
+    disparity = np.broadcast_to(2.0 + 38.0 * rows / (H - 1), (H, W)).copy()  # near at the bottom
+    image = np.full((H, W, 3), 60, np.uint8)  # the ground: dark
+    disparity[:, :30] = 1.0  # a strip of far sky down the left side, bright
+    image[:, :30] = 250
+    depth = (SCENE.focal_px * 40 / disparity).astype(np.float32)
+    cloud = back_project(image, depth, working_view(SCENE, (0.0, 0.0, 0.0)))
+    closer = working_view(SCENE, (0.0, 0.0, 0.6 * float(depth.min())))
+    ground = (slice(H // 2, H), slice(60, W))
+    assert not render(cloud, closer, DISPARITY_SCALE).covered[ground].all(), "no crack to close"
+    frame = render_frame(cloud, closer, DISPARITY_SCALE)
+    assert frame[ground].max() < 120, "sky fetched into a crack of the ground"

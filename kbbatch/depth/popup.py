@@ -29,6 +29,15 @@ CARD_MIN_FRACTION = 0.01
 CONTACT_MARGIN = 0.03
 """A horizon is kept at least this far (fraction of height) above where objects stand."""
 
+FRAME_HOLE_FRACTION_MAX = 0.25
+"""A salient region that encloses more background than this share of its extent is a frame
+seen through (a bridge's tunnel of frames, an arch), not an upright object: its inner parts
+are rarely at its depth, and as one card they slide over the far scene and tear it."""
+
+LATTICE_SOLIDITY_MIN = 0.2
+"""A salient region filling less than this share of its convex hull is a lattice or scattered
+thin structure (a launch tower): as one flat card its bars tear from what they stand in."""
+
 GROUNDED_EXCEPTIONS = ("bird",)
 """Classes that need not stand on the ground (they do not push the horizon up)."""
 
@@ -74,7 +83,24 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     minimum = CARD_MIN_FRACTION * binary.size
     cards = [clean_mask(labels == k) for k in range(1, count)
              if stats[k, cv2.CC_STAT_AREA] >= minimum]
-    return [(card, True) for card in cards if card.sum() >= minimum]
+    return [(card, True) for card in cards if card.sum() >= minimum and stands_up(card)]
+
+
+def stands_up(mask: np.ndarray) -> bool:
+    """Whether a salient region (no detected object) can be an upright card: neither a frame
+    enclosing much background nor a sparse lattice; without a card it keeps the ground plane
+    and backdrop's depth, which never tears."""
+    outside = (~mask).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(outside, connectivity=4)
+    open_to_border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0],
+                                               labels[:, -1]]))
+    enclosed = int(stats[1:, cv2.CC_STAT_AREA].sum()
+                   - stats[open_to_border[open_to_border > 0], cv2.CC_STAT_AREA].sum())
+    area = int(mask.sum())
+    hull = np.zeros(mask.shape, np.uint8)
+    cv2.fillConvexPoly(hull, cv2.convexHull(cv2.findNonZero(mask.astype(np.uint8))), 1)
+    return (enclosed <= FRAME_HOLE_FRACTION_MAX * (area + enclosed)
+            and area >= LATTICE_SOLIDITY_MIN * int(hull.sum()))
 
 
 def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> np.ndarray:
