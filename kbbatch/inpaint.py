@@ -85,7 +85,12 @@ def near_side_of_holes(depth: np.ndarray, hole: np.ndarray) -> np.ndarray:
     """Known pixels beside a hole that belong to the nearer surface at its border.
 
     Each hole is judged on its own: pixels in its border band whose disparity lies above the
-    midpoint of the band's disparity range are foreground, the rest are background sources.
+    midpoint of the band's disparity range are foreground, the rest are background sources;
+    except a pixel with something clearly nearer around it (within twice SOURCE_BAND_PX),
+    which is the far side there. Judged over the whole hole alone, a hole running
+    down a post into a field (whose ground comes nearer towards the bottom) took the near end
+    of the field for foreground and left only the far horizon as its source: the field beside
+    the post was filled with sky.
     """
     count, labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=8)
     band_kernel = cv2.getStructuringElement(
@@ -102,7 +107,15 @@ def near_side_of_holes(depth: np.ndarray, hole: np.ndarray) -> np.ndarray:
     midpoint = 0.5 * (lowest + highest)
     near = np.zeros_like(hole)
     near[band] = disparity > midpoint[label_of] * (1.0 + FOREGROUND_MARGIN)
-    return near
+    # something clearly nearer close by: then it is the far side there, whatever the hole
+    around = cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (4 * SOURCE_BAND_PX + 1, 4 * SOURCE_BAND_PX + 1)
+    )
+    band_disparity = np.zeros(hole.shape, np.float32)
+    band_disparity[band] = disparity
+    locally_far = cv2.dilate(band_disparity, around) > band_disparity * (
+        1.0 + 2 * FOREGROUND_MARGIN)
+    return near & ~locally_far
 
 
 def fill_background(
@@ -178,25 +191,39 @@ def _ring_order(known, rows, cols):
 
 @numba.njit(cache=True, nogil=True)
 def _grow_far_depth(depth, known, rows, cols):
-    # In ring order, each hole pixel takes the farthest depth among its known or already
-    # filled neighbours; a pixel fenced in by foreground takes the farthest known depth.
+    # In ring order, each hole pixel takes the farthest depth among its neighbours of the ring
+    # before its own (known pixels are ring 0); a pixel fenced in by foreground takes the
+    # farthest known depth. Neighbours of its own ring are not used: along a ring the farthest
+    # depth would run on from pixel to pixel, and the far end of a long hole (the horizon at
+    # the top of a post) flooded all of it.
     height, width = known.shape
-    valid = known.copy()
+    ring = np.full((height, width), np.iinfo(np.int64).max, np.int64)
     farthest = np.float32(0.0)
     for y in range(height):
         for x in range(width):
-            if known[y, x] and depth[y, x] > farthest:
-                farthest = depth[y, x]
+            if known[y, x]:
+                ring[y, x] = 0
+                if depth[y, x] > farthest:
+                    farthest = depth[y, x]
     for k in range(rows.shape[0]):
         y, x = rows[k], cols[k]
-        far = np.float32(0.0)
+        before = np.iinfo(np.int64).max
         for dy in range(-1, 2):
             for dx in range(-1, 2):
                 yy, xx = y + dy, x + dx
-                if 0 <= yy < height and 0 <= xx < width and valid[yy, xx]:
-                    far = max(far, depth[yy, xx])
+                if 0 <= yy < height and 0 <= xx < width:
+                    before = min(before, ring[yy, xx])
+        far = np.float32(0.0)
+        if before < np.iinfo(np.int64).max:
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    yy, xx = y + dy, x + dx
+                    if 0 <= yy < height and 0 <= xx < width and ring[yy, xx] == before:
+                        far = max(far, depth[yy, xx])
+            ring[y, x] = before + 1
+        else:
+            ring[y, x] = 0  # fenced in: a ring of its own
         depth[y, x] = far if far > 0 else farthest
-        valid[y, x] = True
 
 
 @numba.njit(cache=True, nogil=True)

@@ -207,3 +207,31 @@ def test_fill_of_a_textured_background_is_textured_and_never_blocked_coloured():
     assert inside > 0.5 * around, f"flat fill: detail {inside:.1f} against {around:.1f} around"
     old_style = np.abs(np.diff(cv2.GaussianBlur(grey, (0, 0), 3.0), axis=1))[20:60, 45:65].mean()
     assert inside > 2 * old_style
+
+
+def test_a_hole_down_a_post_into_a_field_is_filled_with_field_not_sky():
+    """A disocclusion beside a post runs from the horizon down into a field whose ground comes
+    nearer towards the bottom. Judged over the whole hole, the near end of the field was taken
+    for foreground, and the horizon's depth ran down the hole from pixel to pixel: the field
+    beside the post was filled with sky (a real photo)."""
+    height, width = 80, 40
+    rows = np.arange(height, dtype=np.float32)[:, None]
+    depth = np.broadcast_to(4000.0 / (1.0 + rows / 8.0), (height, width)).copy()  # the ground
+    depth[:8] = 20000.0  # the sky above the horizon
+    colour = np.zeros((height, width, 3), np.float32)
+    colour[:] = (190, 150, 110)  # field
+    colour[:8] = (200, 220, 245)  # sky
+    depth[:, 25:] = 300.0  # the post, nearer than anything
+    colour[:, 25:] = (90, 50, 30)
+    hole = np.zeros((height, width), bool)
+    hole[4:, 15:25] = True
+    known = np.where(hole, np.inf, depth)
+    blocked = near_side_of_holes(known, hole)
+    assert blocked[:, 25].any() and not blocked[20:, 14].any()  # the post, never the field
+    filled_colour, filled_depth = fill_background(colour, np.where(hole, 0, depth), hole,
+                                                  blocked)
+    lower = hole.copy()
+    lower[:30] = False
+    assert np.abs(filled_colour[lower] - (190, 150, 110)).max() < 10
+    field_depth = np.broadcast_to(depth[:, :1], depth.shape)[lower]
+    assert np.all(filled_depth[lower] <= 2 * field_depth)  # the ground, never the sky (20000)
