@@ -138,6 +138,11 @@ def _into_gamut(colour: np.ndarray, anchor: np.ndarray) -> np.ndarray:
     return anchor + offset * fraction
 
 
+def _held_to(colour: np.ndarray, clean: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
+    """colour, each channel within tolerance of the clean colour, in 0..255."""
+    return np.clip(clean + np.clip(colour - clean, -tolerance, tolerance), 0, 255)
+
+
 def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of image over the weighted pixels in a box (the side of 2 radius + 1), and the
@@ -268,22 +273,21 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
     tolerance = EDGE_SLACK + (texture - EDGE_SLACK) * from_edge
-    kept = np.clip(back_clean + np.clip(second - back_clean, -tolerance, tolerance), 0, 255)
+    kept = _held_to(second, back_clean, tolerance)
     strays = np.any(np.abs(kept - second) > 0.5, axis=-1, keepdims=True) & ~mostly_front
     first = np.where(strays, _into_gamut(_remainder(pixel, np.round(kept), 1 - share),
                                          np.clip(front_here, 0, 255)), first)
     first = np.round(np.clip(first, 0, 255))
     second = _remainder(pixel, first, share)
     second = np.where(mostly_front, _into_gamut(second, np.clip(front_here, 0, 255)),
-                      np.clip(back_clean + np.clip(second - back_clean, -tolerance, tolerance),
-                              0, 255))
+                      _held_to(second, back_clean, tolerance))
     second = np.round(np.clip(second, 0, 255))
     front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
     # A band pixel the matte left wholly to the background is held to the same allowance: near
     # the edge, what strays further is dropped (the start view loses a faint rim) rather than
     # left behind.
-    whole = np.clip(back_clean + np.clip(pixel - back_clean, -tolerance, tolerance), 0, 255)
-    whole = np.where(has_background[band][:, None], np.round(whole), pixel)
+    whole = np.where(has_background[band][:, None],
+                     np.round(_held_to(pixel, back_clean, tolerance)), pixel)
     back_band = np.where(a <= 0.0, whole, np.where(mostly_front, first, second))
 
     alpha = (near_mask > 0.5).astype(np.float32)
