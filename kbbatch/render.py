@@ -570,14 +570,17 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, touched, image):
                 here[c] = 0.0
     if empty == 0:
         return
+    # the nearest covered pixel left, right, above and below, and whether it is close by
+    found_y = np.empty(4, np.int64)
+    found_x = np.empty(4, np.int64)
+    near = np.empty(4, np.bool_)
     for yy in range(height):
         for xx in range(width):
             if front[yy, xx] > 0:
                 continue
-            # the nearest covered pixel left, right, above and below, and how far each is
-            found_y = np.full(4, -1, np.int64)
-            found_x = np.full(4, -1, np.int64)
-            near = np.zeros(4, np.bool_)
+            found_y[:] = -1
+            found_x[:] = -1
+            near[:] = False
             for k, (step_y, step_x) in enumerate(((0, -1), (0, 1), (-1, 0), (1, 0))):
                 cy = yy + step_y
                 cx = xx + step_x

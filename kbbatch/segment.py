@@ -231,11 +231,12 @@ def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.nda
 def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     """mask with its outline moved onto the photo's colour edge, within SNAP_BAND_PX.
 
-    Each pixel near the outline joins the side with the more alike sure pixel nearby (the
-    mask shrunk, the rest grown, by the band; Lab colour, among SNAP_SAMPLES offsets): the
-    nearest sample, not a side's mean, since a side is often several colours (a dark suit,
-    a white cuff, a hand). Only pieces joined to the sure inside are kept. Where a side has no
-    sure pixel in reach, the outline stays as it was.
+    Each pixel near the outline is compared with the sure pixels nearby of both sides (the
+    mask shrunk, the rest grown, by the band; Lab colour, at SNAP_SAMPLES offsets): with each
+    side's nearest sample, not its mean, since a side is often several colours (a dark suit,
+    a white cuff, a hand). It joins a side only where that side is clearly more alike
+    (SNAP_CONFIDENCE); elsewhere, and where a side has no sure pixel in reach, the outline
+    stays as it was. Only pieces joined to the sure inside are kept.
     """
     binary = mask.astype(np.uint8)
     window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SNAP_BAND_PX + 1,) * 2)
@@ -298,8 +299,8 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
 
 def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None,
                    min_px: int = FRAGMENT_MIN_PX) -> np.ndarray:
-    """mask without pieces under FRAGMENT_MIN_FRACTION of its largest or FRAGMENT_MIN_PX;
-    the piece holding most of keep (the face) always stays."""
+    """mask without pieces under FRAGMENT_MIN_FRACTION of its largest or min_px; the piece
+    holding most of keep (the face) always stays."""
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8),
                                                                connectivity=8)
     if count <= 1:
