@@ -136,7 +136,9 @@ def fill_background(
     rows, cols = np.nonzero(hole)
     order = _ring_order(source, rows.astype(np.int64), cols.astype(np.int64))
     ring_rows, ring_cols = rows[order].astype(np.int64), cols[order].astype(np.int64)
-    _grow_far_depth(filled_depth, source, ring_rows, ring_cols)
+    reach = np.ones((2 * SEARCH_RADIUS_PX + 1,) * 2, np.uint8)
+    local_far = cv2.dilate(np.where(source, filled_depth, 0).astype(np.float32), reach)
+    _grow_far_depth(filled_depth, source, ring_rows, ring_cols, local_far)
     offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols)
     for sweep in range(REFINE_SWEEPS):
         step = 1 if sweep % 2 else -1  # inward, then outward, ...
@@ -190,12 +192,13 @@ def _ring_order(known, rows, cols):
 
 
 @numba.njit(cache=True, nogil=True)
-def _grow_far_depth(depth, known, rows, cols):
+def _grow_far_depth(depth, known, rows, cols, local_far):
     # In ring order, each hole pixel takes the farthest depth among its neighbours of the ring
-    # before its own (known pixels are ring 0); a pixel fenced in by foreground takes the
-    # farthest known depth. Neighbours of its own ring are not used: along a ring the farthest
-    # depth would run on from pixel to pixel, and the far end of a long hole (the horizon at
-    # the top of a post) flooded all of it.
+    # before its own (known pixels are ring 0). Neighbours of its own ring are not used: along
+    # a ring the farthest depth would run on from pixel to pixel, and the far end of a long
+    # hole (the horizon at the top of a post) flooded all of it. A pixel fenced in by
+    # foreground or soft edges takes the farthest known depth within SEARCH_RADIUS_PX
+    # (local_far): the scene's farthest would have it copy a distant backdrop.
     height, width = known.shape
     ring = np.full((height, width), np.iinfo(np.int64).max, np.int64)
     farthest = np.float32(0.0)
@@ -223,7 +226,9 @@ def _grow_far_depth(depth, known, rows, cols):
             ring[y, x] = before + 1
         else:
             ring[y, x] = 0  # fenced in: a ring of its own
-        depth[y, x] = far if far > 0 else farthest
+        if far <= 0:  # fenced in: the farthest background around it, else anywhere
+            far = local_far[y, x] if local_far[y, x] > 0 else farthest
+        depth[y, x] = far
 
 
 @numba.njit(cache=True, nogil=True)
@@ -310,16 +315,39 @@ def _synthesise(colour, depth, source, rows, cols):
             if score < best_score:
                 best_score = score
                 best_y, best_x = cy, cx
+        if best_y < 0:  # no patch to compare (fenced in by a soft edge): the nearest source
+            best_y, best_x = _nearest_source(depth, source, y, x, minimum)
+        if best_y < 0:
+            best_y, best_x = _nearest_source(depth, source, y, x, -np.inf)
         if best_y >= 0:
             for c in range(3):
                 colour[y, x, c] = colour[best_y, best_x, c]
             offsets[y, x, 0] = best_y
             offsets[y, x, 1] = best_x
             valid[y, x] = True
-        else:  # no far source nearby: the mean of the far neighbours, else mid grey
+        else:  # no source in the whole image: the mean of the far neighbours, else mid grey
             _neighbour_mean(colour, depth, filled, y, x, minimum)
         filled[y, x] = True
     return offsets
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_source(depth, source, y, x, minimum):
+    # The first source at least minimum deep met going out from (y, x) in the eight directions
+    # at doubling distances; (-1, -1) if none. A hole fenced in by a soft edge has no known
+    # pixel within any patch, so no patch distance ranks its candidates: without this it
+    # took a neighbour mean of nothing (mid grey dashes beside a shoulder).
+    height, width = source.shape
+    reach = 1
+    while reach < 2 * max(height, width):
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                cy, cx = y + dy * reach, x + dx * reach
+                if ((dy or dx) and 0 <= cy < height and 0 <= cx < width and source[cy, cx]
+                        and depth[cy, cx] >= minimum):
+                    return cy, cx
+        reach *= 2
+    return -1, -1
 
 
 @numba.njit(cache=True, nogil=True)

@@ -52,15 +52,23 @@ networks see the photo at 257 to 416 px, so their outlines are several pixels of
 that overshoots its person carries a skirt of wall along with them as a halo."""
 
 HAIR_FRACTION = 0.3
-"""Outlines are not snapped in the top of a person box, this share of its height: hair and
-a light background mix into no colour edge, and snapping cut hair away into holes."""
+"""Outlines are not snapped around the head, in the top of a person box this share of its
+height: hair and a light background mix into no colour edge, and snapping cut hair away into
+holes..."""
 
-SNAP_CONFIDENCE = 4.0
-"""A pixel near the outline changes side only where its squared colour distance to the other
-side's nearest sample is this many times its distance to its new side's (twice as far)."""
+HAIR_MARGIN_FRACTION = 0.1
+"""... over the columns the mask's head spans (its top HEAD_FRACTION of the box) widened by
+this share of the box width on each side. Across the whole box, a head-and-shoulders portrait's
+shoulders were never snapped either, and a card kept a chunk of white backdrop beside the
+helmet that the move carried over the flag."""
 
-SNAP_SAMPLES = 64
-"""Offsets (within twice the band) at which sure pixels are compared with a band pixel."""
+GRAPH_CUT_SIDE_PX = 512
+"""The graph cut that snaps an outline runs on the object's box scaled to at most this long a
+side: 0.4 to 0.6 s per person of a two-people portrait on 2 cores. At 384 a sliver of white
+backdrop above an astronaut's helmet rim stayed on her card."""
+
+GRAPH_CUT_ITERATIONS = 3
+"""GrabCut rounds of re-fitting its colour models; the outline settles after two or three."""
 
 FRAGMENT_MIN_FRACTION = 0.1
 """A piece of an instance's mask smaller than this fraction of its largest piece is dropped:
@@ -215,6 +223,19 @@ def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) 
     return _box_mask(shape, (x0 + margin, y0, x1 - margin, y0 + HEAD_FRACTION * (y1 - y0)))
 
 
+def hair_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+    """Where a person's outline is left as the network drew it: the top HAIR_FRACTION of the
+    box, over the head's columns (widened by HAIR_MARGIN_FRACTION), not the shoulders'."""
+    x0, y0, x1, y1 = box
+    head_bottom = int(round(y0 + HEAD_FRACTION * (y1 - y0)))
+    columns = np.flatnonzero(mask[max(0, int(round(y0))):max(0, head_bottom)].any(axis=0))
+    if columns.size == 0:
+        return np.zeros(mask.shape, bool)
+    margin = HAIR_MARGIN_FRACTION * (x1 - x0)
+    return _box_mask(mask.shape, (max(0.0, columns.min() - margin), y0, columns.max() + 1 + margin,
+                                  y0 + HAIR_FRACTION * (y1 - y0)))
+
+
 def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
     """The connected pieces of mask that reach core, or lie mostly outside others (the other
     objects' boxes): a piece cut off by an occluder stays, a neighbour's arm does not."""
@@ -231,49 +252,59 @@ def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.nda
 def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     """mask with its outline moved onto the photo's colour edge, within SNAP_BAND_PX.
 
-    Each pixel near the outline is compared with the sure pixels nearby of both sides (the
-    mask shrunk, the rest grown, by the band; Lab colour, at SNAP_SAMPLES offsets): with each
-    side's nearest sample, not its mean, since a side is often several colours (a dark suit,
-    a white cuff, a hand). It joins a side only where that side is clearly more alike
-    (SNAP_CONFIDENCE); elsewhere, and where a side has no sure pixel in reach, the outline
-    stays as it was. Only pieces joined to the sure inside are kept.
+    The mask shrunk by the band is surely the object, the rest beyond it surely not; in
+    between, a graph cut (OpenCV's GrabCut: colour models of both sides and a cost for cutting
+    across smooth colour) decides, starting from the network's outline. Per-pixel colour tests
+    cannot tell a patch of white backdrop beside a shoulder from the person's own white
+    helmet rim; the cut sees that the patch joins the backdrop with no edge between. The cut
+    punches no holes, and only pieces joined to the sure inside are kept.
     """
     binary = mask.astype(np.uint8)
     window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SNAP_BAND_PX + 1,) * 2)
     inside = cv2.erode(binary, window) > 0
     outside = cv2.dilate(binary, window) == 0
-    band = ~inside & ~outside
     if not inside.any() or not outside.any():
         return mask.astype(bool)
-    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(np.float32)
-    ys, xs = np.nonzero(band)
-    height, width = mask.shape
-    nearest = {True: np.full(ys.size, np.inf, np.float32),
-               False: np.full(ys.size, np.inf, np.float32)}
-    reach = 2 * SNAP_BAND_PX  # every band pixel can see sure pixels of both sides
-    offsets = np.random.default_rng(0).integers(-reach, reach + 1, (SNAP_SAMPLES, 2))
-    colour = lab[ys, xs]
-    for dy, dx in offsets:
-        sy, sx = np.clip(ys + dy, 0, height - 1), np.clip(xs + dx, 0, width - 1)
-        distance = np.sum((lab[sy, sx] - colour) ** 2, axis=-1)
-        for side, sure in ((True, inside), (False, outside)):
-            here = sure[sy, sx]
-            nearest[side][here] = np.minimum(nearest[side][here], distance[here])
-    # A pixel changes side only on clear evidence: much more alike one side's samples than the
-    # other's. Skin against a beige curtain, a lavender helmet rim against a grey flag, a white
-    # cuff against a cream wall are no evidence, and the network's outline stays there.
-    modelled = np.isfinite(nearest[True]) & np.isfinite(nearest[False])
-    inside_clearly = modelled & (nearest[True] * SNAP_CONFIDENCE < nearest[False])
-    outside_clearly = modelled & (nearest[False] * SNAP_CONFIDENCE < nearest[True])
-    joins = np.where(inside_clearly, True, np.where(outside_clearly, False,
-                                                    mask[ys, xs].astype(bool)))
-    snapped = inside.copy()
-    snapped[ys[joins], xs[joins]] = True
+    snapped = inside | (_graph_cut(image, inside, outside, mask.astype(bool)) & ~outside)
+    # The cut moves the outline; it punches no hole: what it gives to the background but is
+    # cut off from the sure outside (a white lining inside a helmet) stays as it was.
+    count, labels = cv2.connectedComponents((~snapped).astype(np.uint8), connectivity=4)
+    reaching = np.zeros(count, bool)
+    reaching[np.unique(labels[outside])] = True
+    enclosed = ~snapped & ~reaching[labels]
+    snapped = snapped | (enclosed & mask.astype(bool))
     count, labels = cv2.connectedComponents(snapped.astype(np.uint8), connectivity=8)
     joined = np.zeros(count, bool)
     joined[np.unique(labels[inside])] = True
     joined[0] = False
     return joined[labels]
+
+
+def _graph_cut(image: np.ndarray, inside: np.ndarray, outside: np.ndarray, mask: np.ndarray
+               ) -> np.ndarray:
+    """The foreground GrabCut finds between the sure inside and outside, starting from mask,
+    over the box around the unsure band, at most GRAPH_CUT_SIDE_PX a side."""
+    ys, xs = np.nonzero(~outside)
+    top, bottom = max(0, ys.min() - 2), min(mask.shape[0], ys.max() + 3)
+    left, right = max(0, xs.min() - 2), min(mask.shape[1], xs.max() + 3)
+    labels = np.where(inside, cv2.GC_FGD, np.where(
+        outside, cv2.GC_BGD, np.where(mask, cv2.GC_PR_FGD, cv2.GC_PR_BGD))).astype(np.uint8)
+    labels = labels[top:bottom, left:right]
+    height, width = labels.shape
+    scale = min(1.0, GRAPH_CUT_SIDE_PX / max(height, width))
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    small = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
+    if not ((small == cv2.GC_FGD).any() and (small == cv2.GC_BGD).any()):
+        return mask
+    colour = cv2.resize(image[top:bottom, left:right], size, interpolation=cv2.INTER_AREA)
+    background_model, foreground_model = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.grabCut(np.ascontiguousarray(colour[..., ::-1]), small, None, background_model,
+                foreground_model, GRAPH_CUT_ITERATIONS, cv2.GC_INIT_WITH_MASK)
+    foreground = ((small == cv2.GC_FGD) | (small == cv2.GC_PR_FGD)).astype(np.float32)
+    result = mask.copy()
+    result[top:bottom, left:right] = cv2.resize(foreground, (width, height),
+                                                interpolation=cv2.INTER_LINEAR) > 0.5
+    return result
 
 
 def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
@@ -428,8 +459,7 @@ def find_instances(image: np.ndarray) -> list[Instance]:
     for detection, mask, head in zip(objects, masks, heads, strict=True):
         snapped = snap_to_colour_edges(mask, image)
         if detection.class_name == "person":  # hair is no colour edge: the head is kept
-            x0, y0, x1, y1 = detection.box
-            hair = _box_mask(shape, (x0, y0, x1, y0 + HAIR_FRACTION * (y1 - y0)))
+            hair = hair_region(mask, detection.box)
             snapped = np.where(hair, mask, snapped)
         mask = clean_mask(snapped, keep=head)
         # the face is its main pieces (a stray pixel of it is no face to keep whole)

@@ -7,7 +7,13 @@ import pytest
 from kbbatch.camera import working_size
 from kbbatch.depth.popup import popup_disparity
 from kbbatch.images import read_image
-from kbbatch.segment import FRAGMENT_MIN_PX, clean_mask, group_cards, own_pieces
+from kbbatch.segment import (
+    FRAGMENT_MIN_PX,
+    GROUP_SLIVER_PX,
+    clean_mask,
+    group_cards,
+    own_pieces,
+)
 
 from .conftest import SHARED, textured_image
 
@@ -105,7 +111,14 @@ def test_real_two_people_get_one_card_without_a_shard_between_them(monkeypatch):
     height, width = disparity.shape
     card = disparity[int(0.7 * height), int(0.3 * width)]
     row = disparity[int(0.7 * height), int(0.3 * width):int(0.7 * width)]
-    assert (row == card).all(), "a strip of background floats between the two people"
+    assert row[-1] == card, "the two people are not one group card"
+    # Between them the wall is either on the card (a sliver) or one clean gap of wall: no
+    # piece of card floats in the gap, and no piece of wall on the card.
+    gap = np.flatnonzero(row != card)
+    if gap.size:
+        assert gap.size == gap[-1] - gap[0] + 1, "a shard floats between the two people"
+        assert gap.size >= 2 * GROUP_SLIVER_PX, "a sliver of wall between them left the card"
+        assert row[gap].max() < 0.9 * card, "the gap is not the wall behind them"
 
 
 def crowd_photo() -> np.ndarray:
@@ -161,13 +174,45 @@ def test_a_mask_snaps_onto_the_photos_colour_edge():
     rough[40:176, 48:164] = True  # overshoots top, left, bottom; falls short on the right
     snapped = snap_to_colour_edges(rough, photo)
     assert (rough ^ truth).sum() > 2500
-    assert (snapped ^ truth).sum() < 0.1 * (rough ^ truth).sum()
+    # on the blurred edge (sigma 1 px) the outline may fall a pixel either side
+    ring = np.ones((3, 3), np.uint8)
+    edge = cv2.dilate(truth.astype(np.uint8), ring) > cv2.erode(truth.astype(np.uint8), ring)
+    assert ((snapped ^ truth) & ~edge).sum() < 0.02 * (rough ^ truth).sum()
     # A wall pixel beyond the band is never taken, however dark.
     far = np.zeros_like(truth)
     far[50:60, 60 - SNAP_BAND_PX - 20:60 - SNAP_BAND_PX - 12] = True
     dark = photo.copy()
     dark[far] = 20
     assert not snap_to_colour_edges(rough, dark)[far].any()
+
+
+def test_a_pocket_of_backdrop_beside_a_shoulder_leaves_the_card():
+    """An astronaut's mask took in a pocket of white backdrop between her helmet's rim and her
+    shoulder; the helmet is white too, so no per-pixel colour test could tell them apart, and
+    the move carried the pocket over the flag behind. It joins the backdrop with no edge
+    between them, and the graph cut gives it to the backdrop."""
+    from kbbatch.segment import snap_to_colour_edges
+
+    height, width = 240, 240
+    rng = np.random.default_rng(3)
+    white, orange, grey = (228.0, 226.0, 230.0), (235.0, 110.0, 50.0), (40.0, 40.0, 45.0)
+    photo = np.empty((height, width, 3))
+    photo[:] = white  # the backdrop
+    truth = np.zeros((height, width), bool)
+    truth[120:, 30:] = True  # the shoulder
+    truth[40:, 130:] = True  # the helmet, above the shoulder on the right
+    photo[truth] = orange
+    photo[40:, 130:140] = grey  # the helmet's dark rim
+    photo[50:, 140:200] = white  # its white lining, the backdrop's colour
+    photo = np.clip(photo + rng.normal(0, 4, photo.shape), 0, 255)
+    photo = cv2.GaussianBlur(photo.astype(np.uint8), (0, 0), 1.0)
+    rough = truth.copy()
+    rough[95:120, 100:130] = True  # the pocket of backdrop the network took in
+    snapped = snap_to_colour_edges(rough, photo)
+    pocket = rough & ~truth
+    assert snapped[pocket].mean() < 0.1, "the pocket of backdrop stayed on the card"
+    assert snapped[truth].mean() > 0.98, "the person was cut"
+    assert snapped[50:, 145:195].all(), "the helmet's white lining was cut away"
 
 
 def test_real_cards_follow_the_peoples_outlines(monkeypatch):

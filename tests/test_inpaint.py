@@ -235,3 +235,25 @@ def test_a_hole_down_a_post_into_a_field_is_filled_with_field_not_sky():
     assert np.abs(filled_colour[lower] - (190, 150, 110)).max() < 10
     field_depth = np.broadcast_to(depth[:, :1], depth.shape)[lower]
     assert np.all(filled_depth[lower] <= 2 * field_depth)  # the ground, never the sky (20000)
+
+
+def test_a_hole_fenced_in_by_soft_edges_is_filled_from_the_background_around_it():
+    """Small holes inside a wide soft edge (blocked: its colour is part object) had no known
+    pixel within any patch, so no patch distance ranked their candidates: they took a
+    neighbour mean of nothing, mid grey, and showed as grey dashes beside a shoulder. They
+    take the background around them, at its depth, not the scene's farthest."""
+    height, width = 120, 160
+    depth = np.full((height, width), 1000.0, np.float32)  # the wall
+    depth[:20] = 50000.0  # a far sky at the top, the scene's farthest
+    colour = np.zeros((height, width, 3), np.float32)
+    colour[:] = (200, 170, 120)  # the wall's colour
+    colour[:20] = (235, 240, 250)
+    blocked = np.zeros((height, width), bool)
+    blocked[40:100, 60:100] = True  # a soft edge, 40 px wide
+    hole = np.zeros_like(blocked)
+    hole[60:80, 78:80] = True  # a crack inside it, no known pixel within 18 px
+    blocked &= ~hole
+    filled_colour, filled_depth = fill_background(colour, np.where(hole, 0, depth), hole,
+                                                  blocked)
+    assert np.abs(filled_colour[hole] - (200, 170, 120)).max() < 1
+    np.testing.assert_allclose(filled_depth[hole], 1000.0)
