@@ -63,6 +63,12 @@ BACKGROUND_REACH_WIDER = 4
 """Where no clean background pixel lies near a band pixel, its colour is estimated over a box
 this many times wider."""
 
+MIRROR_SPREAD_MIN = 6.0
+"""Behind an object, the background's texture is continued (mirrored from its clean pixels)
+where that texture's spread exceeds this many levels (a field, foliage, brick); a smoother
+background (sky, a wall) takes its flat clean mean, which the mirror would only give shards
+of nearby edges."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -151,6 +157,28 @@ def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
     total = cv2.blur(weight, size)
     weighted = cv2.blur(image * weight[..., None], size)
     return weighted / np.maximum(total, 1e-6)[..., None], total
+
+
+def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """For each pixel of where, the colour of the clean pixel mirrored through its nearest
+    clean pixel (that nearest pixel itself when the mirror falls off the clean region): the
+    clean texture continued across the region's border, seamless at the border."""
+    ys, xs = np.nonzero(where)
+    if not clean.any():
+        return colour[ys, xs]
+    _, labels = cv2.distanceTransformWithLabels((~clean).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    clean_y, clean_x = np.nonzero(clean)
+    label_y = np.zeros(int(labels.max()) + 1, np.int64)
+    label_x = np.zeros_like(label_y)
+    label_y[labels[clean_y, clean_x]] = clean_y
+    label_x[labels[clean_y, clean_x]] = clean_x
+    near_y, near_x = label_y[labels[ys, xs]], label_x[labels[ys, xs]]
+    mirror_y, mirror_x = 2 * near_y - ys, 2 * near_x - xs
+    height, width = clean.shape
+    inside = (mirror_y >= 0) & (mirror_y < height) & (mirror_x >= 0) & (mirror_x < width)
+    inside[inside] = clean[mirror_y[inside], mirror_x[inside]]
+    return colour[np.where(inside, mirror_y, near_y), np.where(inside, mirror_x, near_x)]
 
 
 def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
@@ -259,7 +287,22 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # side with the larger share takes its clean estimate, the other the rest of the pixel.
     a = matte[:, None]
     mostly_front = a >= 0.5
-    first = np.round(np.clip(np.where(mostly_front, back_here, front_here), 0, 255))
+    # Behind the object the background is unknown: its texture mirrored from the clean
+    # background beyond the band, not the flat mean, or the move uncovers a smooth strip.
+    back_behind = mirrored_texture(colour, cv2.resize(back_source, size,
+                                                      interpolation=cv2.INTER_NEAREST) > 0.5,
+                                   band)
+    # ... less any part of it towards the object's colour: a trace of the object (the blurred
+    # tail of a wire) in the clean background would be copied behind it as a ghost.
+    deviation = back_behind - back_here
+    towards = np.sum(deviation * contrast, axis=-1) / np.maximum(spread, 1e-6)
+    back_behind = back_here + deviation - np.maximum(towards, 0.0)[:, None] * contrast
+    spread_allowed = BACKGROUND_SPREAD * back_spread[band][:, None] + BACKGROUND_SLACK
+    textured = has_background[band] & (back_spread[band] > MIRROR_SPREAD_MIN)
+    back_behind = np.where(textured[:, None],
+                           _held_to(back_behind, np.clip(back_here, 0, 255), spread_allowed),
+                           back_here)
+    first = np.round(np.clip(np.where(mostly_front, back_behind, front_here), 0, 255))
     share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
     second = _remainder(pixel, first, share)
     # Where the background (as the remainder) strays from its clean estimate further than the
