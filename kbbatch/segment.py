@@ -52,9 +52,9 @@ networks see the photo at 257 to 416 px, so their outlines are several pixels of
 that overshoots its person carries a skirt of wall along with them as a halo."""
 
 HAIR_FRACTION = 0.3
-"""Outlines are not snapped around the head, in the top of a person box this share of its
-height: hair and a light background mix into no colour edge, and snapping cut hair away into
-holes..."""
+"""Outlines are not snapped around the head, down to the neck and at least this share of a
+person box's height: hair and a light background mix into no colour edge, and snapping cut
+hair away into holes (and a retouched rim along a jaw off the face, left behind as a smear)..."""
 
 HAIR_MARGIN_FRACTION = 0.1
 """... over the columns the mask's head spans (its top HEAD_FRACTION of the box) widened by
@@ -62,10 +62,18 @@ this share of the box width on each side. Across the whole box, a head-and-shoul
 shoulders were never snapped either, and a card kept a chunk of white backdrop beside the
 helmet that the move carried over the flag."""
 
+FURRED_CLASSES = ("bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear", "zebra",
+                  "giraffe")
+"""Salient classes whose outlines are not snapped: the graph cut clipped a giraffe's mane into
+a lumpy outline."""
+
 GRAPH_CUT_SIDE_PX = 512
 """The graph cut that snaps an outline runs on the object's box scaled to at most this long a
 side: 0.4 to 0.6 s per person of a two-people portrait on 2 cores. At 384 a sliver of white
 backdrop above an astronaut's helmet rim stayed on her card."""
+
+GRAPH_CUT_MIN_CHANGE_PX = 2
+"""The cut's changes to the outline thinner than twice this (working px) are not taken."""
 
 GRAPH_CUT_ITERATIONS = 3
 """GrabCut rounds of re-fitting its colour models; the outline settles after two or three."""
@@ -224,16 +232,23 @@ def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) 
 
 
 def hair_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
-    """Where a person's outline is left as the network drew it: the top HAIR_FRACTION of the
-    box, over the head's columns (widened by HAIR_MARGIN_FRACTION), not the shoulders'."""
+    """Where a person's outline is left as the network drew it: the head, from the top of the
+    box down to the neck (the narrowest row of the mask below the head's widest, within the
+    top half of the box; at least HAIR_FRACTION of it), over the head's columns widened by
+    HAIR_MARGIN_FRACTION of the box width; not the shoulders."""
     x0, y0, x1, y1 = box
-    head_bottom = int(round(y0 + HEAD_FRACTION * (y1 - y0)))
-    columns = np.flatnonzero(mask[max(0, int(round(y0))):max(0, head_bottom)].any(axis=0))
+    top, height = max(0, int(round(y0))), y1 - y0
+    head_bottom = int(round(y0 + HEAD_FRACTION * height))
+    columns = np.flatnonzero(mask[top:max(top, head_bottom)].any(axis=0))
     if columns.size == 0:
         return np.zeros(mask.shape, bool)
+    widths = mask[top:int(round(y0 + 0.5 * height))].sum(axis=1)
+    widest = int(np.argmax(widths[:max(1, head_bottom - top)]))
+    neck = top + widest + int(np.argmin(widths[widest:])) if widths.size > widest else top
+    bottom = max(y0 + HAIR_FRACTION * height, neck + HAIR_MARGIN_FRACTION * (x1 - x0))
     margin = HAIR_MARGIN_FRACTION * (x1 - x0)
-    return _box_mask(mask.shape, (max(0.0, columns.min() - margin), y0, columns.max() + 1 + margin,
-                                  y0 + HAIR_FRACTION * (y1 - y0)))
+    return _box_mask(mask.shape, (max(0.0, columns.min() - margin), y0,
+                                  columns.max() + 1 + margin, min(bottom, y0 + 0.5 * height)))
 
 
 def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -266,6 +281,14 @@ def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     if not inside.any() or not outside.any():
         return mask.astype(bool)
     snapped = inside | (_graph_cut(image, inside, outside, mask.astype(bool)) & ~outside)
+    # Only changes of some thickness count: a sliver shaved off a thin low-contrast rim (a
+    # helmet's ring against a pale backdrop) was a notch in it, and the matte places the
+    # outline within a pixel or two anyway.
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * GRAPH_CUT_MIN_CHANGE_PX + 1,) * 2)
+    original = mask.astype(bool)
+    removed = cv2.morphologyEx((original & ~snapped).astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    added = cv2.morphologyEx((snapped & ~original).astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    snapped = (original & ~(removed > 0)) | (added > 0)
     # The cut moves the outline; it punches no hole: what it gives to the background but is
     # cut off from the sure outside (a white lining inside a helmet) stays as it was.
     count, labels = cv2.connectedComponents((~snapped).astype(np.uint8), connectivity=4)
@@ -457,7 +480,9 @@ def find_instances(image: np.ndarray) -> list[Instance]:
     heads = [head_region(d.box, shape) if d.class_name == "person" else None for d in objects]
     kept = []
     for detection, mask, head in zip(objects, masks, heads, strict=True):
-        snapped = snap_to_colour_edges(mask, image)
+        # fur and feathers are no colour edge either: an animal keeps the network's outline
+        snapped = (mask if detection.class_name in FURRED_CLASSES
+                   else snap_to_colour_edges(mask, image))
         if detection.class_name == "person":  # hair is no colour edge: the head is kept
             hair = hair_region(mask, detection.box)
             snapped = np.where(hair, mask, snapped)
