@@ -257,6 +257,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # background that happens to share the object's colour is not taken for part of it.
     # Pixel centres next to the near side lie half a pixel beyond its edge.
     beyond = np.where(near_side, -float(band_px), to_near - 0.5).astype(np.float32)
+    within = np.where(near_side, to_far - 0.5, 0.0).astype(np.float32)
     outside_px = cv2.resize(beyond, size, interpolation=cv2.INTER_LINEAR)
 
     # The rest concerns band pixels only.
@@ -277,6 +278,12 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
                      along)
     matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[band]
     matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
+    # Inside it, likewise, an object can only be as transparent as a blurred edge displaced
+    # by its widest blur (the depth edge may sit that far inside): the light grain of a
+    # wooden post was taken for half transparency, and the field behind it showed through.
+    inside_px = cv2.resize(within, size, interpolation=cv2.INTER_LINEAR)[band]
+    matte = np.maximum(matte, np.where(inside_px > 0,
+                                       blurred_edge_tail(EDGE_BLUR_MAX_PX - inside_px), 0.0))
     matte = np.clip(matte, 0.0, 1.0)
     matte[matte < CLEAN_ALPHA] = 0.0
     matte[matte > 1.0 - CLEAN_ALPHA] = 1.0

@@ -170,3 +170,27 @@ def test_the_background_behind_an_objects_edge_keeps_its_texture():
     flat = 180.0 * (1 - share) + np.array([110.0, 60.0, 30.0]) * share
     flat_layers = split_layers(flat.astype(np.uint8), depth)
     assert flat_layers.background[flat_layers.band & flat_layers.far].std(axis=0).max() < 2
+
+
+def test_an_objects_own_light_grain_is_not_taken_for_transparency():
+    """A wooden post's light grain lies on the colour line between its brown and the pale
+    field behind it: read as alpha, a strip of the post went half transparent, and its far
+    layer showed as a pale band once the post moved away."""
+    height, width = 120, 160
+    rng = np.random.default_rng(11)
+    photo = np.empty((height, width, 3), np.float32)
+    photo[:] = (215, 190, 140)  # the field
+    post = np.zeros((height, width), bool)
+    post[:, 70:100] = True
+    brown, pale = np.array([110.0, 60.0, 30.0]), np.array([200.0, 170.0, 120.0])
+    grain = rng.normal(0.2, 0.2, (height, 30))
+    grain[:, :8] += 0.4  # its lit side, lighter still
+    grain = np.clip(grain, 0, 1).astype(np.float32)
+    grain = cv2.GaussianBlur(grain, (0, 0), sigmaX=0.6, sigmaY=3.0)[..., None]  # light streaks
+    photo[post] = (brown * (1 - grain) + pale * grain).reshape(-1, 3)
+    depth = np.where(post, 500.0, 3000.0).astype(np.float32)
+    layers = split_layers(photo.astype(np.uint8), depth)
+    deep = np.zeros_like(post)
+    deep[:, 75:95] = True  # 5 px and more inside the post
+    assert layers.band[deep].any()
+    assert np.percentile(layers.alpha[deep & layers.band], 5) > 0.8
