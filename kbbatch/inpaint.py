@@ -136,16 +136,30 @@ def fill_background(
     rows, cols = np.nonzero(hole)
     order = _ring_order(source, rows.astype(np.int64), cols.astype(np.int64))
     ring_rows, ring_cols = rows[order].astype(np.int64), cols[order].astype(np.int64)
-    reach = np.ones((2 * SEARCH_RADIUS_PX + 1,) * 2, np.uint8)
+    reach = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SEARCH_RADIUS_PX + 1,) * 2)
     local_far = cv2.dilate(np.where(source, filled_depth, 0).astype(np.float32), reach)
     _grow_far_depth(filled_depth, source, ring_rows, ring_cols, local_far)
-    offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols)
+    nearest = _nearest_sources(source)
+    offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols, nearest)
     for sweep in range(REFINE_SWEEPS):
         step = 1 if sweep % 2 else -1  # inward, then outward, ...
         _refine(filled_colour, filled_depth, source, offsets, ring_rows[::step],
                 ring_cols[::step], sweep)
     _vote(filled_colour, offsets, ring_rows, ring_cols)
     return filled_colour, filled_depth
+
+
+def _nearest_sources(source: np.ndarray) -> np.ndarray:
+    """(H, W, 2): the row and column of each pixel's nearest source pixel (-1 without any)."""
+    nearest = np.full(source.shape + (2,), -1, np.int64)
+    if not source.any():
+        return nearest
+    _, labels = cv2.distanceTransformWithLabels((~source).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    source_rows, source_cols = np.nonzero(source)
+    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
+    by_label[labels[source_rows, source_cols]] = np.stack([source_rows, source_cols], axis=1)
+    return by_label[labels]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -275,7 +289,7 @@ def _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum):
 
 
 @numba.njit(cache=True, nogil=True)
-def _synthesise(colour, depth, source, rows, cols):
+def _synthesise(colour, depth, source, rows, cols, nearest):
     # Exemplar synthesis in ring order: each hole pixel copies the centre of the best
     # matching source patch among coherent candidates (its filled neighbours' sources,
     # shifted) and random ones within SEARCH_RADIUS_PX; a candidate must be a source at
@@ -315,10 +329,10 @@ def _synthesise(colour, depth, source, rows, cols):
             if score < best_score:
                 best_score = score
                 best_y, best_x = cy, cx
-        if best_y < 0:  # no patch to compare (fenced in by a soft edge): the nearest source
+        if best_y < 0:  # no patch to compare (fenced in by a soft edge): a near source
             best_y, best_x = _nearest_source(depth, source, y, x, minimum)
-        if best_y < 0:
-            best_y, best_x = _nearest_source(depth, source, y, x, -np.inf)
+        if best_y < 0:  # none far enough on the probes: the nearest source of all
+            best_y, best_x = nearest[y, x, 0], nearest[y, x, 1]
         if best_y >= 0:
             for c in range(3):
                 colour[y, x, c] = colour[best_y, best_x, c]
@@ -333,10 +347,11 @@ def _synthesise(colour, depth, source, rows, cols):
 
 @numba.njit(cache=True, nogil=True)
 def _nearest_source(depth, source, y, x, minimum):
-    # The first source at least minimum deep met going out from (y, x) in the eight directions
-    # at doubling distances; (-1, -1) if none. A hole fenced in by a soft edge has no known
-    # pixel within any patch, so no patch distance ranks its candidates: without this it
-    # took a neighbour mean of nothing (mid grey dashes beside a shoulder).
+    # The first source at least minimum deep met going out from (y, x) in the eight
+    # directions, pixel by pixel within SEARCH_RADIUS_PX and at doubling distances beyond;
+    # (-1, -1) if none. A hole fenced in by a soft edge has no known pixel within any patch,
+    # so no patch distance ranks its candidates: without this it took a neighbour mean of
+    # nothing (mid grey dashes beside a shoulder).
     height, width = source.shape
     reach = 1
     while reach < 2 * max(height, width):
@@ -346,7 +361,7 @@ def _nearest_source(depth, source, y, x, minimum):
                 if ((dy or dx) and 0 <= cy < height and 0 <= cx < width and source[cy, cx]
                         and depth[cy, cx] >= minimum):
                     return cy, cx
-        reach *= 2
+        reach = reach + 1 if reach < SEARCH_RADIUS_PX else 2 * reach
     return -1, -1
 
 

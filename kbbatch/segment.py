@@ -56,11 +56,14 @@ HAIR_FRACTION = 0.3
 person box's height: hair and a light background mix into no colour edge, and snapping cut
 hair away into holes (and a retouched rim along a jaw off the face, left behind as a smear)..."""
 
+HEAD_SEARCH_FRACTION = 0.5
+"""The neck is looked for in the top half of a person box."""
+
 HAIR_MARGIN_FRACTION = 0.1
 """... over the columns the mask's head spans (its top HEAD_FRACTION of the box) widened by
-this share of the box width on each side. Across the whole box, a head-and-shoulders portrait's
-shoulders were never snapped either, and a card kept a chunk of white backdrop beside the
-helmet that the move carried over the flag."""
+this share of the box width on each side, and this far below the neck. Across the whole
+box, a head-and-shoulders portrait's shoulders were never snapped either, and a card kept a
+chunk of white backdrop beside the helmet that the move carried over the flag."""
 
 FURRED_CLASSES = ("bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear", "zebra",
                   "giraffe")
@@ -73,7 +76,13 @@ side: 0.4 to 0.6 s per person of a two-people portrait on 2 cores. At 384 a sliv
 backdrop above an astronaut's helmet rim stayed on her card."""
 
 GRAPH_CUT_MIN_CHANGE_PX = 2
-"""The cut's changes to the outline thinner than twice this (working px) are not taken."""
+"""The cut's changes to the outline that an opening by a disc of this radius removes (under
+5 px thick at the working size) are not taken."""
+
+EDGE_GAIN = 1.5
+"""A piece the cut moves is taken where its new border's colour gradient is at least this many
+times its old border's: on a grey shirt against a grey wall the cut would otherwise move the
+outline anywhere in the band."""
 
 GRAPH_CUT_ITERATIONS = 3
 """GrabCut rounds of re-fitting its colour models; the outline settles after two or three."""
@@ -234,21 +243,25 @@ def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) 
 def hair_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
     """Where a person's outline is left as the network drew it: the head, from the top of the
     box down to the neck (the narrowest row of the mask below the head's widest, within the
-    top half of the box; at least HAIR_FRACTION of it), over the head's columns widened by
-    HAIR_MARGIN_FRACTION of the box width; not the shoulders."""
+    top HEAD_SEARCH_FRACTION of the box, and at least HAIR_FRACTION of it) plus a margin of
+    HAIR_MARGIN_FRACTION of the box width, over the head's columns widened by that margin;
+    not the shoulders."""
     x0, y0, x1, y1 = box
+    left, right = max(0, int(round(x0))), max(0, int(round(x1)))
     top, height = max(0, int(round(y0))), y1 - y0
     head_bottom = int(round(y0 + HEAD_FRACTION * height))
-    columns = np.flatnonzero(mask[top:max(top, head_bottom)].any(axis=0))
+    in_box = mask[:, left:right]
+    columns = left + np.flatnonzero(in_box[top:max(top, head_bottom)].any(axis=0))
     if columns.size == 0:
         return np.zeros(mask.shape, bool)
-    widths = mask[top:int(round(y0 + 0.5 * height))].sum(axis=1)
+    search_bottom = y0 + HEAD_SEARCH_FRACTION * height
+    widths = in_box[top:max(top + 1, int(round(search_bottom)))].sum(axis=1)
     widest = int(np.argmax(widths[:max(1, head_bottom - top)]))
-    neck = top + widest + int(np.argmin(widths[widest:])) if widths.size > widest else top
-    bottom = max(y0 + HAIR_FRACTION * height, neck + HAIR_MARGIN_FRACTION * (x1 - x0))
+    neck = top + widest + int(np.argmin(widths[widest:]))
     margin = HAIR_MARGIN_FRACTION * (x1 - x0)
+    bottom = min(max(y0 + HAIR_FRACTION * height, neck + margin), search_bottom)
     return _box_mask(mask.shape, (max(0.0, columns.min() - margin), y0,
-                                  columns.max() + 1 + margin, min(bottom, y0 + 0.5 * height)))
+                                  columns.max() + 1 + margin, bottom))
 
 
 def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -269,33 +282,42 @@ def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
 
     The mask shrunk by the band is surely the object, the rest beyond it surely not; in
     between, a graph cut (OpenCV's GrabCut: colour models of both sides and a cost for cutting
-    across smooth colour) decides, starting from the network's outline. Per-pixel colour tests
+    across smooth colour) proposes, starting from the network's outline. Per-pixel colour tests
     cannot tell a patch of white backdrop beside a shoulder from the person's own white
-    helmet rim; the cut sees that the patch joins the backdrop with no edge between. The cut
-    punches no holes, and only pieces joined to the sure inside are kept.
+    helmet rim; the cut sees that the patch joins the backdrop with no edge between. A piece it
+    moves is taken only where that puts the outline on a clearly stronger colour edge (where
+    object and background look alike, the network's outline stays), it punches no holes, and
+    only pieces joined to the sure inside are kept.
     """
-    binary = mask.astype(np.uint8)
+    image = np.ascontiguousarray(image, dtype=np.uint8)
+    original = mask.astype(bool)
+    binary = original.astype(np.uint8)
     window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SNAP_BAND_PX + 1,) * 2)
     inside = cv2.erode(binary, window) > 0
     outside = cv2.dilate(binary, window) == 0
     if not inside.any() or not outside.any():
-        return mask.astype(bool)
-    snapped = inside | (_graph_cut(image, inside, outside, mask.astype(bool)) & ~outside)
+        return original
+    proposed = inside | (_graph_cut(image, inside, outside, original) & ~outside)
     # Only changes of some thickness count: a sliver shaved off a thin low-contrast rim (a
     # helmet's ring against a pale backdrop) was a notch in it, and the matte places the
     # outline within a pixel or two anyway.
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * GRAPH_CUT_MIN_CHANGE_PX + 1,) * 2)
-    original = mask.astype(bool)
-    removed = cv2.morphologyEx((original & ~snapped).astype(np.uint8), cv2.MORPH_OPEN, kernel)
-    added = cv2.morphologyEx((snapped & ~original).astype(np.uint8), cv2.MORPH_OPEN, kernel)
-    snapped = (original & ~(removed > 0)) | (added > 0)
+    removed = cv2.morphologyEx((original & ~proposed).astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    added = cv2.morphologyEx((proposed & ~original).astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    strength = _edge_strength(image)
+    removed = _onto_stronger_edges(removed > 0, original & ~(removed > 0), strength)
+    added = _onto_stronger_edges(added > 0, ~(original | (added > 0)), strength)
+    snapped = (original & ~removed) | added
     # The cut moves the outline; it punches no hole: what it gives to the background but is
-    # cut off from the sure outside (a white lining inside a helmet) stays as it was.
+    # cut off from the sure outside and the image border (a white lining inside a helmet)
+    # stays as it was.
     count, labels = cv2.connectedComponents((~snapped).astype(np.uint8), connectivity=4)
     reaching = np.zeros(count, bool)
     reaching[np.unique(labels[outside])] = True
+    reaching[np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))] \
+        = True
     enclosed = ~snapped & ~reaching[labels]
-    snapped = snapped | (enclosed & mask.astype(bool))
+    snapped = snapped | (enclosed & original)
     count, labels = cv2.connectedComponents(snapped.astype(np.uint8), connectivity=8)
     joined = np.zeros(count, bool)
     joined[np.unique(labels[inside])] = True
@@ -303,11 +325,41 @@ def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     return joined[labels]
 
 
+def _edge_strength(image: np.ndarray) -> np.ndarray:
+    """Colour gradient magnitude (Lab, summed over channels) of a lightly smoothed image."""
+    lab = cv2.cvtColor(cv2.GaussianBlur(image, (0, 0), 1.0), cv2.COLOR_RGB2LAB).astype(np.float32)
+    gx = cv2.Sobel(lab, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(lab, cv2.CV_32F, 0, 1, ksize=3)
+    return np.sqrt(gx * gx + gy * gy).sum(axis=-1)
+
+
+def _onto_stronger_edges(pieces: np.ndarray, beyond: np.ndarray, strength: np.ndarray
+                         ) -> np.ndarray:
+    """The connected pieces (of what the cut moves) whose new border, where they meet beyond,
+    runs along a colour edge at least EDGE_GAIN times as strong as their old border."""
+    count, labels = cv2.connectedComponents(pieces.astype(np.uint8), connectivity=8)
+    if count <= 1:
+        return pieces
+    ring = np.ones((3, 3), np.uint8)
+    grown = cv2.dilate(labels.astype(np.float32), ring).astype(np.int64)  # a neighbour's label
+    new_border = beyond & (grown > 0)
+    old_border = pieces & (cv2.dilate((~pieces & ~beyond).astype(np.uint8), ring) > 0)
+
+    def mean_strength(border: np.ndarray, owner: np.ndarray) -> np.ndarray:
+        total = np.bincount(owner[border], strength[border], minlength=count)
+        number = np.bincount(owner[border], minlength=count)
+        return total / np.maximum(number, 1)
+
+    stronger = mean_strength(new_border, grown) >= EDGE_GAIN * mean_strength(old_border, labels)
+    stronger[0] = False
+    return stronger[labels]
+
+
 def _graph_cut(image: np.ndarray, inside: np.ndarray, outside: np.ndarray, mask: np.ndarray
                ) -> np.ndarray:
     """The foreground GrabCut finds between the sure inside and outside, starting from mask,
     over the box around the unsure band, at most GRAPH_CUT_SIDE_PX a side."""
-    ys, xs = np.nonzero(~outside)
+    ys, xs = np.nonzero(~outside)  # the box around the band, with a 2 px rim of outside
     top, bottom = max(0, ys.min() - 2), min(mask.shape[0], ys.max() + 3)
     left, right = max(0, xs.min() - 2), min(mask.shape[1], xs.max() + 3)
     labels = np.where(inside, cv2.GC_FGD, np.where(

@@ -184,6 +184,10 @@ def test_a_mask_snaps_onto_the_photos_colour_edge():
     dark = photo.copy()
     dark[far] = 20
     assert not snap_to_colour_edges(rough, dark)[far].any()
+    # Where object and background look alike there is no edge to snap to: the outline stays.
+    alike = np.clip(np.array([120.0, 120.0, 125.0]) + rng.normal(0, 5, (height, width, 3)),
+                    0, 255).astype(np.uint8)
+    assert (snap_to_colour_edges(rough, alike) ^ rough).sum() == 0
 
 
 def test_a_pocket_of_backdrop_beside_a_shoulder_leaves_the_card():
@@ -238,3 +242,21 @@ def test_real_cards_follow_the_peoples_outlines(monkeypatch):
         along = gradient[outline]
         assert np.median(along) > 115, np.median(along)
         assert (along < 40).mean() < 0.3, (along < 40).mean()
+
+
+def test_a_persons_head_keeps_its_outline_down_to_the_neck_but_not_the_shoulders():
+    """Hair and a retouched rim along a jaw are no colour edge: snapping cut them off, and the
+    fill smeared the rim. The shoulders are snapped (a pocket of backdrop beside them)."""
+    from kbbatch.segment import hair_region
+
+    height, width = 400, 400
+    person = np.zeros((height, width), np.uint8)
+    cv2.circle(person, (200, 90), 60, 1, -1)  # the head, down to row 150
+    person[140:185, 175:225] = 1  # the neck, 50 px wide
+    person[185:, 60:340] = 1  # the shoulders and body
+    box = (60.0, 30.0, 340.0, 400.0)
+    region = hair_region(person.astype(bool), box)
+    rows, cols = np.nonzero(region)
+    assert region[30:150, 140:261].all(), "the head is snapped"
+    assert rows.max() < 185 + 0.1 * 280 + 1, "the zone reaches far below the neck"
+    assert cols.min() > 100 and cols.max() < 300, "the shoulders' columns are in the zone"
