@@ -373,6 +373,10 @@ def _graph_cut(image: np.ndarray, inside: np.ndarray, outside: np.ndarray, mask:
         return mask
     colour = cv2.resize(image[top:bottom, left:right], size, interpolation=cv2.INTER_AREA)
     background_model, foreground_model = np.zeros((1, 65)), np.zeros((1, 65))
+    # GrabCut seeds its colour models from OpenCV's per-thread random state: reset it, or a
+    # mask (and so a clip) depends on what ran before in that thread (a Ray worker's clip
+    # differed from the local one).
+    cv2.setRNGSeed(0)
     cv2.grabCut(np.ascontiguousarray(colour[..., ::-1]), small, None, background_model,
                 foreground_model, GRAPH_CUT_ITERATIONS, cv2.GC_INIT_WITH_MASK)
     foreground = ((small == cv2.GC_FGD) | (small == cv2.GC_PR_FGD)).astype(np.float32)

@@ -260,3 +260,19 @@ def test_a_persons_head_keeps_its_outline_down_to_the_neck_but_not_the_shoulders
     assert region[30:150, 140:261].all(), "the head is snapped"
     assert rows.max() < 185 + 0.1 * 280 + 1, "the zone reaches far below the neck"
     assert cols.min() > 100 and cols.max() < 300, "the shoulders' columns are in the zone"
+
+
+def test_a_snapped_mask_does_not_depend_on_what_ran_before(monkeypatch):
+    """GrabCut seeds its colour models from OpenCV's per-thread random state: unreset, a Ray
+    worker's clip of the astronaut differed from the local one by 99 mask pixels."""
+    from kbbatch.segment import find_instances
+
+    real_models_or_skip(monkeypatch)
+    photo = at_working_size(read_image(SHARED / "photos" /
+                                       "01_portrait_astronaut_eileen_collins.png"))
+    first = find_instances(photo)
+    cv2.randu(np.zeros((16, 16)), 0, 1)  # anything else drawing on that state meanwhile
+    second = find_instances(photo)
+    assert len(first) == len(second) > 0
+    for a, b in zip(first, second, strict=True):
+        assert np.array_equal(a.mask, b.mask)
