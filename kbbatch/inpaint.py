@@ -24,7 +24,7 @@ from kbbatch.camera import (
     widest_crop,
     working_view,
 )
-from kbbatch.layers import split_layers
+from kbbatch.layers import nearest_pixels, split_layers
 from kbbatch.render import PointCloud, back_project, depth_edges, render
 
 FOREGROUND_MARGIN = 0.05
@@ -139,7 +139,7 @@ def fill_background(
     reach = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SEARCH_RADIUS_PX + 1,) * 2)
     local_far = cv2.dilate(np.where(source, filled_depth, 0).astype(np.float32), reach)
     _grow_far_depth(filled_depth, source, ring_rows, ring_cols, local_far)
-    nearest = _nearest_sources(source)
+    nearest = _nearest_sources(source, hole)
     offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols, nearest)
     for sweep in range(REFINE_SWEEPS):
         step = 1 if sweep % 2 else -1  # inward, then outward, ...
@@ -149,17 +149,14 @@ def fill_background(
     return filled_colour, filled_depth
 
 
-def _nearest_sources(source: np.ndarray) -> np.ndarray:
-    """(H, W, 2): the row and column of each pixel's nearest source pixel (-1 without any)."""
+def _nearest_sources(source: np.ndarray, hole: np.ndarray) -> np.ndarray:
+    """(H, W, 2): at each hole pixel, the row and column of its nearest source pixel (-1
+    elsewhere, and everywhere without any source)."""
     nearest = np.full(source.shape + (2,), -1, np.int64)
-    if not source.any():
-        return nearest
-    _, labels = cv2.distanceTransformWithLabels((~source).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
-    source_rows, source_cols = np.nonzero(source)
-    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
-    by_label[labels[source_rows, source_cols]] = np.stack([source_rows, source_cols], axis=1)
-    return by_label[labels]
+    if source.any():
+        rows, cols = nearest_pixels(source, hole)
+        nearest[hole] = np.stack([rows, cols], axis=1)
+    return nearest
 
 
 @numba.njit(cache=True, nogil=True)

@@ -159,6 +159,18 @@ def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
     return weighted / np.maximum(total, 1e-6)[..., None], total
 
 
+def nearest_pixels(mask: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the nearest pixel of mask (which must have one) to each pixel of
+    where (in np.nonzero order)."""
+    _, labels = cv2.distanceTransformWithLabels((~mask).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    mask_rows, mask_cols = np.nonzero(mask)
+    by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
+    by_label[labels[mask_rows, mask_cols]] = np.stack([mask_rows, mask_cols], axis=1)
+    nearest = by_label[labels[where]]
+    return nearest[:, 0], nearest[:, 1]
+
+
 def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray) -> np.ndarray:
     """For each pixel of where, the colour of the clean pixel mirrored through its nearest
     clean pixel (that nearest pixel itself when the mirror falls off the clean region): the
@@ -166,14 +178,7 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray) -
     ys, xs = np.nonzero(where)
     if not clean.any():
         return colour[ys, xs]
-    _, labels = cv2.distanceTransformWithLabels((~clean).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
-    clean_y, clean_x = np.nonzero(clean)
-    label_y = np.zeros(int(labels.max()) + 1, np.int64)
-    label_x = np.zeros_like(label_y)
-    label_y[labels[clean_y, clean_x]] = clean_y
-    label_x[labels[clean_y, clean_x]] = clean_x
-    near_y, near_x = label_y[labels[ys, xs]], label_x[labels[ys, xs]]
+    near_y, near_x = nearest_pixels(clean, where)
     mirror_y, mirror_x = 2 * near_y - ys, 2 * near_x - xs
     height, width = clean.shape
     inside = (mirror_y >= 0) & (mirror_y < height) & (mirror_x >= 0) & (mirror_x < width)
