@@ -25,7 +25,7 @@ from kbbatch.camera import (
     working_view,
 )
 from kbbatch.layers import nearest_pixels, split_layers
-from kbbatch.render import PointCloud, back_project, depth_edges, render
+from kbbatch.render import PointCloud, back_project, depth_edges, points_at, render
 
 FOREGROUND_MARGIN = 0.05
 """A pixel beside a hole is foreground when it is this much (relatively) nearer than the
@@ -136,9 +136,7 @@ def fill_background(
     rows, cols = np.nonzero(hole)
     order = _ring_order(source, rows.astype(np.int64), cols.astype(np.int64))
     ring_rows, ring_cols = rows[order].astype(np.int64), cols[order].astype(np.int64)
-    reach = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SEARCH_RADIUS_PX + 1,) * 2)
-    local_far = cv2.dilate(np.where(source, filled_depth, 0).astype(np.float32), reach)
-    _grow_far_depth(filled_depth, source, ring_rows, ring_cols, local_far)
+    _grow_far_depth(filled_depth, source, ring_rows, ring_cols, SEARCH_RADIUS_PX)
     nearest = _nearest_sources(source, hole)
     offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols, nearest)
     for sweep in range(REFINE_SWEEPS):
@@ -203,13 +201,14 @@ def _ring_order(known, rows, cols):
 
 
 @numba.njit(cache=True, nogil=True)
-def _grow_far_depth(depth, known, rows, cols, local_far):
+def _grow_far_depth(depth, known, rows, cols, radius):
     # In ring order, each hole pixel takes the farthest depth among its neighbours of the ring
     # before its own (known pixels are ring 0). Neighbours of its own ring are not used: along
     # a ring the farthest depth would run on from pixel to pixel, and the far end of a long
     # hole (the horizon at the top of a post) flooded all of it. A pixel fenced in by
-    # foreground or soft edges takes the farthest known depth within SEARCH_RADIUS_PX
-    # (local_far): the scene's farthest would have it copy a distant backdrop.
+    # foreground or soft edges takes the farthest known depth within radius: the scene's
+    # farthest would have it copy a distant backdrop. (Looked up at those few pixels only: a
+    # dilation of the whole view by that disk cost a quarter of a second per view.)
     height, width = known.shape
     ring = np.full((height, width), np.iinfo(np.int64).max, np.int64)
     farthest = np.float32(0.0)
@@ -238,8 +237,23 @@ def _grow_far_depth(depth, known, rows, cols, local_far):
         else:
             ring[y, x] = 0  # fenced in: a ring of its own
         if far <= 0:  # fenced in: the farthest background around it, else anywhere
-            far = local_far[y, x] if local_far[y, x] > 0 else farthest
+            far = _farthest_within(depth, known, y, x, radius)
+            if far <= 0:
+                far = farthest
         depth[y, x] = far
+
+
+@numba.njit(cache=True, nogil=True)
+def _farthest_within(depth, known, y, x, radius):
+    """The farthest known depth within radius px of (y, x); 0 where none is known."""
+    height, width = known.shape
+    far = np.float32(0.0)
+    for yy in range(max(0, y - radius), min(height, y + radius + 1)):
+        span = int(np.sqrt(radius * radius - (yy - y) * (yy - y)))
+        for xx in range(max(0, x - span), min(width, x + span + 1)):
+            if known[yy, xx] and depth[yy, xx] > far:
+                far = depth[yy, xx]
+    return far
 
 
 @numba.njit(cache=True, nogil=True)
@@ -491,24 +505,56 @@ def extend_at_view(
         image = np.clip(small_colour + 0.5, 0, 255).astype(np.uint8)
         mask = (small_hole | blocked).astype(np.uint8) * 255
         small_colour = inpainter(image, mask).astype(np.float32)
-    depth_full = cv2.resize(small_depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    rows, cols = np.nonzero(hole)
     # Enlarged from filled and background pixels only: a plain bilinear enlargement blends the
     # near side's colour (a magenta star, a dark suit, a soft edge) into the fill's border.
-    usable = (small_hole | ~(blocked | small_uncovered)).astype(np.float32)
-    colour_full = _enlarged_from(small_colour, usable, (width, height))
-    colour_full = np.clip(colour_full + 0.5, 0, 255).astype(np.uint8)
-    return back_project(colour_full, depth_full, view, keep=hole), hole_count
+    usable = small_hole | ~(blocked | small_uncovered)
+    colour_at = _enlarged_at(small_colour, usable, (width, height), rows, cols)
+    near_rows, near_cols = _nearest_source_pixel(small_depth.shape, (width, height), rows, cols)
+    return points_at(view, rows, cols, small_depth[near_rows, near_cols],
+                     np.clip(colour_at + 0.5, 0, 255).astype(np.uint8)), hole_count
 
 
-def _enlarged_from(colour: np.ndarray, usable: np.ndarray, size: tuple[int, int]
-                   ) -> np.ndarray:
-    """colour enlarged bilinearly to size from its usable pixels alone (normalised
-    interpolation); where no usable pixel is near, its nearest pixel's colour."""
-    weight = cv2.resize(usable, size, interpolation=cv2.INTER_LINEAR)
-    weighted = cv2.resize(colour * usable[..., None], size, interpolation=cv2.INTER_LINEAR)
-    nearest = cv2.resize(colour, size, interpolation=cv2.INTER_NEAREST)
-    return np.where(weight[..., None] > 1e-3, weighted / np.maximum(weight, 1e-3)[..., None],
-                    nearest)
+def _nearest_source_pixel(small_shape: tuple[int, int], size: tuple[int, int],
+                          rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel of an image of small_shape that an enlargement to size (width, height) by
+    nearest neighbour gives pixels (rows, cols), as cv2.resize's INTER_NEAREST does."""
+    small_height, small_width = small_shape
+    return (np.minimum(rows * small_height // size[1], small_height - 1),
+            np.minimum(cols * small_width // size[0], small_width - 1))
+
+
+def _enlarged_at(colour: np.ndarray, usable: np.ndarray, size: tuple[int, int],
+                 rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """colour enlarged bilinearly to size (width, height) from its usable pixels alone
+    (normalised interpolation), at pixels (rows, cols) only; where no usable pixel is near,
+    the nearest pixel's colour. (Only the hole pixels of a view become points: enlarging the
+    whole view cost more than the fill.)"""
+    small_height, small_width = usable.shape
+
+    def taps(index: np.ndarray, small: int, full: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel centres aligned as cv2.resize's INTER_LINEAR aligns them, clamped at edges."""
+        position = (index + 0.5) * (small / full) - 0.5
+        low = np.floor(position)
+        fraction = (position - low).astype(np.float32)
+        low = low.astype(np.int64)
+        fraction[(low < 0) | (low >= small - 1)] = 0.0
+        low = np.clip(low, 0, small - 1)
+        return low, np.minimum(low + 1, small - 1), fraction
+
+    top, bottom, fy = taps(rows, small_height, size[1])
+    left, right, fx = taps(cols, small_width, size[0])
+    weighted = np.zeros((rows.size, 3), np.float32)
+    weight = np.zeros(rows.size, np.float32)
+    for ys, wy in ((top, 1 - fy), (bottom, fy)):
+        for xs, wx in ((left, 1 - fx), (right, fx)):
+            w = wy * wx * usable[ys, xs]
+            weighted += w[:, None] * colour[ys, xs]
+            weight += w
+    near_rows, near_cols = _nearest_source_pixel(usable.shape, size, rows, cols)
+    return np.where(weight[:, None] > 1e-3, weighted / np.maximum(weight, 1e-3)[:, None],
+                    colour[near_rows, near_cols])
 
 
 def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:

@@ -186,6 +186,16 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray) -
     return colour[np.where(inside, mirror_y, near_y), np.where(inside, mirror_x, near_x)]
 
 
+def _window_around(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """The box of mask's pixels grown by margin, within the image (all of it when empty)."""
+    if not mask.any():
+        return slice(None), slice(None)
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return (slice(max(0, rows[0] - margin), rows[-1] + margin + 1),
+            slice(max(0, cols[0] - margin), cols[-1] + margin + 1))
+
+
 def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     """The photo (RGB uint8 at the cloud's density) and its depth (working size) as soft layers.
 
@@ -227,36 +237,42 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     band = cv2.resize(small_band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     colour = photo.astype(np.float32)
     box = max(1, round(2 * band_px * scale))
-    back_weights = cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR)
-    back_mean, back_weight = _normalised_blur(colour, back_weights, box)
-    back_square, _ = _normalised_blur(colour * colour, back_weights, box)
+    matte_radius = max(1, round(MATTE_RADIUS_PX * scale))
+    # The local colour models and the guided filter are read at band pixels only: they are
+    # computed on the band's box, with a margin as wide as their reach (exact there).
+    win = _window_around(band, max(BACKGROUND_REACH_WIDER * box, 2 * matte_radius) + 2)
+    here = band[win]
+    colour_near = colour[win]
+    back_weights = cv2.resize(back_source, size, interpolation=cv2.INTER_LINEAR)[win]
+    back_mean, back_weight = _normalised_blur(colour_near, back_weights, box)
+    back_square, _ = _normalised_blur(colour_near * colour_near, back_weights, box)
     # Where no clean background lies within the box (a narrow wedge between two spikes, a gap
     # between fingers), a wider one: kept whole instead, the wedge's mixed colour stayed
     # behind as a tinted ghost of the object.
     missing = back_weight <= 1e-3
-    if missing[band].any():
-        wide_mean, wide_weight = _normalised_blur(colour, back_weights,
+    if missing[here].any():
+        wide_mean, wide_weight = _normalised_blur(colour_near, back_weights,
                                                   BACKGROUND_REACH_WIDER * box)
-        wide_square, _ = _normalised_blur(colour * colour, back_weights,
+        wide_square, _ = _normalised_blur(colour_near * colour_near, back_weights,
                                           BACKGROUND_REACH_WIDER * box)
         back_mean = np.where(missing[..., None], wide_mean, back_mean)
         back_square = np.where(missing[..., None], wide_square, back_square)
         back_weight = np.where(missing, wide_weight, back_weight)
     back_spread = np.sqrt(np.maximum(back_square - back_mean * back_mean, 0.0)).mean(axis=-1)
     front_mean, front_weight = _normalised_blur(
-        colour, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR), box)
+        colour_near, cv2.resize(front_source, size, interpolation=cv2.INTER_LINEAR)[win], box)
     has_background = back_weight > 1e-3
     has_foreground = front_weight > 1e-3
 
     near_mask = cv2.resize(near_side.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
-    guided = cv2.ximgproc.guidedFilter(photo.astype(np.float32) / 255.0, near_mask,
-                                       max(1, round(MATTE_RADIUS_PX * scale)), MATTE_EPSILON)
+    guided = cv2.ximgproc.guidedFilter(colour_near / 255.0, near_mask[win], matte_radius,
+                                       MATTE_EPSILON)
     slack = np.ones((2 * MATTE_SLACK_PX + 1,) * 2, np.uint8)
     near_u8 = near_side.astype(np.uint8)
     most = cv2.resize(cv2.dilate(near_u8, slack).astype(np.float32), size,
-                      interpolation=cv2.INTER_LINEAR)
+                      interpolation=cv2.INTER_LINEAR)[win]
     least = cv2.resize(cv2.erode(near_u8, slack).astype(np.float32), size,
-                       interpolation=cv2.INTER_LINEAR)
+                       interpolation=cv2.INTER_LINEAR)[win]
     guided = np.clip(guided, least, most)
     # Beyond the depth edge an object's alpha can only fade like a blurred edge does, so a
     # background that happens to share the object's colour is not taken for part of it.
@@ -267,21 +283,21 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
 
     # The rest concerns band pixels only.
     pixel = colour[band]
-    back_here = back_mean[band]
-    front_here = np.where(has_foreground[band][:, None], front_mean[band], pixel)
+    back_here = back_mean[here]
+    front_here = np.where(has_foreground[here][:, None], front_mean[here], pixel)
     contrast = front_here - back_here
     spread = np.sum(contrast * contrast, axis=-1)
     along = np.sum((pixel - back_here) * contrast, axis=-1) / np.maximum(spread, 1e-6)
     trust = spread / (spread + COLOUR_CONTRAST**2)
-    trust = np.where(has_background[band] & has_foreground[band], trust, 0.0)
+    trust = np.where(has_background[here] & has_foreground[here], trust, 0.0)
     # Beyond the depth edge, a background's own texture moves a pixel along the line to the
     # object's colour too (a red sail towards magenta): only what exceeds that spread is the
     # object's, or the object carries a faint skirt of background texture as its soft edge.
-    texture_share = BACKGROUND_SPREAD * back_spread[band] / np.sqrt(np.maximum(spread, 1e-6))
+    texture_share = BACKGROUND_SPREAD * back_spread[here] / np.sqrt(np.maximum(spread, 1e-6))
     beyond_edge = outside_px[band] > 0
     along = np.where(beyond_edge, (along - texture_share) / np.maximum(1 - texture_share, 0.1),
                      along)
-    matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[band]
+    matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[here]
     matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
     # Inside it, likewise, an object can only be as transparent as a blurred edge displaced
     # by its widest blur (the depth edge may sit that far inside): the light grain of a
@@ -309,8 +325,8 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     deviation = back_behind - back_here
     towards = np.sum(deviation * contrast, axis=-1) / np.maximum(spread, 1e-6)
     back_behind = back_here + deviation - np.maximum(towards, 0.0)[:, None] * contrast
-    spread_allowed = BACKGROUND_SPREAD * back_spread[band][:, None] + BACKGROUND_SLACK
-    textured = has_background[band] & (back_spread[band] > MIRROR_SPREAD_MIN)
+    spread_allowed = BACKGROUND_SPREAD * back_spread[here][:, None] + BACKGROUND_SLACK
+    textured = has_background[here] & (back_spread[here] > MIRROR_SPREAD_MIN)
     back_behind = np.where(textured[:, None],
                            _held_to(back_behind, np.clip(back_here, 0, 255), spread_allowed),
                            back_here)
@@ -324,7 +340,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # cannot take (out of its gamut) is dropped: the start view then differs from the photo
     # there, which is less visible than a ghost.
     back_clean = np.clip(back_here, 0, 255)
-    texture = BACKGROUND_SPREAD * back_spread[band][:, None] + BACKGROUND_SLACK
+    texture = BACKGROUND_SPREAD * back_spread[here][:, None] + BACKGROUND_SLACK
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
     tolerance = EDGE_SLACK + (texture - EDGE_SLACK) * from_edge
@@ -341,7 +357,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # A band pixel the matte left wholly to the background is held to the same allowance: near
     # the edge, what strays further is dropped (the start view loses a faint rim) rather than
     # left behind.
-    whole = np.where(has_background[band][:, None],
+    whole = np.where(has_background[here][:, None],
                      np.round(_held_to(pixel, back_clean, tolerance)), pixel)
     back_band = np.where(a <= 0.0, whole, np.where(mostly_front, first, second))
 
@@ -353,7 +369,9 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     background[band] = back_band.astype(np.uint8)
     # Where no clean background lies near, there is no background colour to give: the pixel
     # is kept whole (unsplit), and the extension fills what is behind it from background only.
-    has_background = has_background | (alpha <= 0.0)
+    found = np.zeros((height, width), bool)
+    found[win] = has_background
+    has_background = found | (alpha <= 0.0)
 
     smooth = upsample_depth(depth, width, height)
     return SoftLayers(

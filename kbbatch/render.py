@@ -122,7 +122,15 @@ def back_project(
     if keep is None:
         keep = np.isfinite(depth)
     rows, cols = np.nonzero(keep)
-    z = depth[rows, cols].astype(np.float32)
+    return points_at(view, rows, cols, depth[rows, cols], colour[rows, cols],
+                     None if alpha is None else alpha[rows, cols])
+
+
+def points_at(view: View, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray,
+              colour: np.ndarray, alpha: np.ndarray | None = None) -> PointCloud:
+    """Points at the centres of some pixels of a view (rows, cols), at their depths, with
+    their colours (and alpha)."""
+    z = depth.astype(np.float32)
     scale = z / np.float32(view.focal_px)
     x = (cols.astype(np.float32) + np.float32(0.5 - view.principal_x_px)) * scale
     y = (rows.astype(np.float32) + np.float32(0.5 - view.principal_y_px)) * scale
@@ -130,8 +138,8 @@ def back_project(
         np.ascontiguousarray(x + np.float32(view.position[0]), dtype=np.float32),
         np.ascontiguousarray(y + np.float32(view.position[1]), dtype=np.float32),
         np.ascontiguousarray(z + np.float32(view.position[2]), dtype=np.float32),
-        np.ascontiguousarray(colour[rows, cols], dtype=np.uint8),
-        None if alpha is None else np.ascontiguousarray(alpha[rows, cols], dtype=np.uint8),
+        np.ascontiguousarray(colour, dtype=np.uint8),
+        None if alpha is None else np.ascontiguousarray(alpha, dtype=np.uint8),
     )
 
 
@@ -223,7 +231,7 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     return Rendering(colour, depth, weight, fringe)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, out):
     """Pixel (yy, xx): the front over the back with premultiplied alpha; a soft front with
     nothing behind it keeps its own colour. Returns whether the pixel is covered."""
@@ -251,12 +259,14 @@ def _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, out):
 def _normalise_kernel(cell, front, stamp, clear, back, back_cell, frame, colour, depth,
                       weight):
     height, width = front.shape
+    pixel = np.empty(3, np.float32)
     for yy in range(height):
         for xx in range(width):
             covered = False
             if front[yy, xx] > 0:
-                covered = _composite(cell, stamp, clear, back, back_cell, frame, yy, xx,
-                                     colour[yy, xx])
+                covered = _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, pixel)
+                for c in range(3):
+                    colour[yy, xx, c] = pixel[c]
                 surface = front[yy, xx]
                 if (stamp[yy, xx] == frame and back[yy, xx] > 0
                         and clear[yy, xx] > np.float32(0.5) * cell[yy, xx, _WEIGHT]):
@@ -270,8 +280,15 @@ def _normalise_kernel(cell, front, stamp, clear, back, back_cell, frame, colour,
 
 
 def coverage(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
-    """Which pixels of a view the cloud covers (the planner's disocclusion test)."""
-    return render(cloud, view, disparity_scale).covered
+    """Which pixels of a view the cloud covers (the planner's disocclusion test).
+
+    Without soft points a pixel is covered exactly when a surface survived the crack filter,
+    so the compositing pass, most of the cost at the planner's size, is skipped."""
+    if cloud.opaque_count < len(cloud):
+        return render(cloud, view, disparity_scale).covered
+    buffers = SplatBuffers.empty(view.height_px, view.width_px)
+    _splat_view(cloud, view, disparity_scale, buffers, 1)
+    return buffers.front > 0
 
 
 def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.ndarray:
