@@ -265,7 +265,7 @@ def _normalise_kernel(cell, front, stamp, clear, back, back_cell, frame, colour,
         for xx in range(width):
             surface = front[yy, xx]
             if surface > 0 and (stamp[yy, xx] != frame or clear[yy, xx] <= 0):
-                # opaque, the common case, written out: through _composite it took four times as long
+                # opaque, the common case, written out (through _composite: four times slower)
                 total = cell[yy, xx, _WEIGHT]
                 scale = one / total
                 for c in range(3):
