@@ -289,6 +289,12 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     spread = np.sum(contrast * contrast, axis=-1)
     along = np.sum((pixel - back_here) * contrast, axis=-1) / np.maximum(spread, 1e-6)
     trust = spread / (spread + COLOUR_CONTRAST**2)
+    # A pixel far off the line between the two colours is no mix of them (a dark spar beside a
+    # magenta star is "less green" like the star, and read a third transparent): its colour
+    # says nothing of the matte, which the guided filter gives instead.
+    off_line = pixel - back_here - along[:, None] * contrast
+    allowed = BACKGROUND_SPREAD * back_spread[here] + BACKGROUND_SLACK
+    trust = trust * allowed**2 / (allowed**2 + np.sum(off_line * off_line, axis=-1))
     trust = np.where(has_background[here] & has_foreground[here], trust, 0.0)
     # Beyond the depth edge, a background's own texture moves a pixel along the line to the
     # object's colour too (a red sail towards magenta): only what exceeds that spread is the

@@ -194,3 +194,22 @@ def test_an_objects_own_light_grain_is_not_taken_for_transparency():
     deep[:, 75:95] = True  # 5 px and more inside the post
     assert layers.band[deep].any()
     assert np.percentile(layers.alpha[deep & layers.band], 5) > 0.8
+
+
+def test_a_dark_line_beside_an_object_is_not_taken_for_its_soft_edge():
+    """Measured from the colours alone, a dark spar beside a magenta star is "less green" like
+    the star and read as a third transparent: that part of the star's layer then floated over
+    the sail as a pink haze once the star moved away (photo 22 of the layered benchmark)."""
+    height, width = 100, 140
+    photo = np.empty((height, width, 3), np.uint8)
+    photo[:] = (225, 222, 218)  # a pale sail
+    star = np.zeros((height, width), bool)
+    star[:, :60] = True
+    photo[star] = (255, 0, 255)
+    photo[:, 62:65] = (55, 45, 40)  # the dark spar, 2 to 4 px beside the edge
+    depth = np.where(star, 500.0, 3000.0).astype(np.float32)
+    layers = split_layers(photo, depth)
+    spar = np.zeros_like(star)
+    spar[:, 62:65] = True
+    assert layers.band[spar].all()
+    assert layers.alpha[spar].max() < 0.1
