@@ -213,3 +213,22 @@ def test_a_dark_line_beside_an_object_is_not_taken_for_its_soft_edge():
     spar[:, 62:65] = True
     assert layers.band[spar].all()
     assert layers.alpha[spar].max() < 0.1
+
+
+def test_a_white_objects_shaded_rim_leaves_no_line_on_a_white_wall():
+    """A white pot's rim is a little darker than its face. Its soft edge solved with the face's
+    colour left the wall behind it 3 levels darker: at the end view a grey line traced the
+    pot's old outline on the wall (photo 15)."""
+    height, width = 100, 140
+    wall, pot = np.array([219.0, 216.0, 223.0]), np.array([231.0, 229.0, 235.0])
+    inside = np.zeros((height, width), np.float32)
+    inside[:, :70] = 1.0
+    shade = np.zeros((height, width, 1), np.float32)
+    shade[:, 66:70] = 6.0  # the rim, in shadow
+    soft = cv2.GaussianBlur(inside, (0, 0), 1.2)
+    colour = cv2.GaussianBlur(inside[..., None] * (pot - shade), (0, 0), 1.2)
+    photo = colour + (1 - soft[..., None]) * wall
+    photo = np.clip(photo + 0.5, 0, 255).astype(np.uint8)
+    layers = split_layers(photo, np.where(inside > 0.5, 500.0, 3000.0).astype(np.float32))
+    assert layers.far.sum() > 500
+    assert np.abs(layers.background[layers.far] - wall).max() <= 1.5
