@@ -70,6 +70,10 @@ where that texture's spread exceeds this many levels (a field, foliage, brick); 
 background (sky, a wall) takes its flat clean mean, which the mirror would only give shards
 of nearby edges."""
 
+MIRROR_DEPTH_MARGIN = 0.05
+"""A mirrored texture comes from pixels no nearer than the far side of the edge it continues,
+less this fraction of its depth: never from the object itself."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -172,10 +176,16 @@ def nearest_pixels(mask: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.
     return nearest[:, 0], nearest[:, 1]
 
 
-def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray) -> np.ndarray:
-    """For each pixel of where, the colour of the clean pixel mirrored through its nearest
-    clean pixel (that nearest pixel itself when the mirror falls off the clean region): the
-    clean texture continued across the region's border, seamless at the border."""
+def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
+                     depth: np.ndarray, far_depth: np.ndarray) -> np.ndarray:
+    """For each pixel of where, the colour of the pixel mirrored through its nearest clean
+    pixel (that nearest pixel itself when the mirror falls off): the clean texture continued
+    across the region's border, seamless there.
+
+    The mirror may land on any pixel outside where whose depth (per image pixel) is at least
+    the pixel's far_depth (per pixel of where), not only on clean ones: those may be a thin
+    strip (between the band and the reach of the depth edge), and mirrors falling off it took
+    one pixel's colour across the band as a smooth streak."""
     ys, xs = np.nonzero(where)
     if not clean.any():
         return colour[ys, xs]
@@ -183,7 +193,9 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray) -
     mirror_y, mirror_x = 2 * near_y - ys, 2 * near_x - xs
     height, width = clean.shape
     inside = (mirror_y >= 0) & (mirror_y < height) & (mirror_x >= 0) & (mirror_x < width)
-    inside[inside] = clean[mirror_y[inside], mirror_x[inside]]
+    landing_y, landing_x = mirror_y[inside], mirror_x[inside]
+    inside[inside] = ~where[landing_y, landing_x] & (
+        depth[landing_y, landing_x] >= far_depth[inside] * (1.0 - MIRROR_DEPTH_MARGIN))
     return colour[np.where(inside, mirror_y, near_y), np.where(inside, mirror_x, near_x)]
 
 
@@ -324,14 +336,19 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     mostly_front = a >= 0.5
     # Behind the object the background is unknown: its texture mirrored from the clean
     # background beyond the band, not the flat mean, or the move uncovers a smooth strip.
+    smooth = upsample_depth(depth, width, height)
+    far_depth = cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST)
     back_behind = mirrored_texture(colour, cv2.resize(back_source, size,
                                                       interpolation=cv2.INTER_NEAREST) > 0.5,
-                                   band)
-    # ... less any part of it towards the object's colour: a trace of the object (the blurred
-    # tail of a wire) in the clean background would be copied behind it as a ghost.
+                                   band, smooth, far_depth[band])
+    # ... less what lies further along the line to the object's colour than the texture's
+    # own spread: a trace of the object (the blurred tail of a wire) in the clean background
+    # would be copied behind it as a ghost. The same is taken off the other way, or the
+    # texture behind comes out paler than the texture it continues (dark grass dropped).
     deviation = back_behind - back_here
     towards = np.sum(deviation * contrast, axis=-1) / np.maximum(spread, 1e-6)
-    back_behind = back_here + deviation - np.maximum(towards, 0.0)[:, None] * contrast
+    excess = towards - np.clip(towards, -texture_share, texture_share)
+    back_behind = back_here + deviation - excess[:, None] * contrast
     spread_allowed = BACKGROUND_SPREAD * back_spread[here][:, None] + BACKGROUND_SLACK
     textured = has_background[here] & (back_spread[here] > MIRROR_SPREAD_MIN)
     back_behind = np.where(textured[:, None],
@@ -380,14 +397,13 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     found[win] = has_background
     has_background = found | (alpha <= 0.0)
 
-    smooth = upsample_depth(depth, width, height)
     return SoftLayers(
         depth=smooth,
         band=band,
         has_background=has_background,
         alpha=alpha,
         near_depth=cv2.resize(nearest, size, interpolation=cv2.INTER_NEAREST),
-        far_depth=cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST),
+        far_depth=far_depth,
         foreground=foreground,
         background=background,
     )
