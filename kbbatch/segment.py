@@ -52,9 +52,16 @@ networks see the photo at 257 to 416 px, so their outlines are several pixels of
 that overshoots its person carries a skirt of wall along with them as a halo."""
 
 HAIR_FRACTION = 0.3
-"""Outlines are not snapped around the head, down to the neck and at least this share of a
-person box's height: hair and a light background mix into no colour edge, and snapping cut
-hair away into holes (and a retouched rim along a jaw off the face, left behind as a smear)..."""
+"""Outlines are not snapped around the lower head, down to the neck and at least this share
+of a person box's height: a retouched rim along a jaw is no colour edge the cut respects, and
+snapping took it off the face, left behind as a smear..."""
+
+JAW_FROM_FRACTION = 0.4
+"""... from this far down the head (box top to the bottom of the zone): about the ears' top
+(from half-way down, the cut clipped an ear's rim). Above, the graph cut hugs the hair: kept
+as the network drew it, a strip of window beside Obama's hair (photo 02) and a chunk of
+curtain beside Biden's (03) travelled with them. (The per-pixel colour test before the cut
+took grey hair away in holes; the cut does not.)"""
 
 HEAD_SEARCH_FRACTION = 0.5
 """The neck is looked for in the top half of a person box."""
@@ -240,12 +247,12 @@ def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) 
     return _box_mask(shape, (x0 + margin, y0, x1 - margin, y0 + HEAD_FRACTION * (y1 - y0)))
 
 
-def hair_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
-    """Where a person's outline is left as the network drew it: the head, from the top of the
-    box down to the neck (the narrowest row of the mask below the head's widest, within the
-    top HEAD_SEARCH_FRACTION of the box, and at least HAIR_FRACTION of it) plus a margin of
-    HAIR_MARGIN_FRACTION of the box width, over the head's columns widened by that margin;
-    not the shoulders."""
+def jaw_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+    """Where a person's outline is left as the network drew it: the lower head, from
+    JAW_FROM_FRACTION of the way down to the neck (the narrowest row of the mask below the
+    head's widest, within the top HEAD_SEARCH_FRACTION of the box, and at least HAIR_FRACTION
+    of it) plus a margin of HAIR_MARGIN_FRACTION of the box width, over the head's columns
+    widened by that margin; not the hair above, nor the shoulders."""
     x0, y0, x1, y1 = box
     left, right = max(0, int(round(x0))), max(0, int(round(x1)))
     top, height = max(0, int(round(y0))), y1 - y0
@@ -260,7 +267,8 @@ def hair_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.
     neck = top + widest + int(np.argmin(widths[widest:]))
     margin = HAIR_MARGIN_FRACTION * (x1 - x0)
     bottom = min(max(y0 + HAIR_FRACTION * height, neck + margin), search_bottom)
-    return _box_mask(mask.shape, (max(0.0, columns.min() - margin), y0,
+    return _box_mask(mask.shape, (max(0.0, columns.min() - margin),
+                                  y0 + JAW_FROM_FRACTION * (bottom - y0),
                                   columns.max() + 1 + margin, bottom))
 
 
@@ -539,9 +547,9 @@ def find_instances(image: np.ndarray) -> list[Instance]:
         # fur and feathers are no colour edge either: an animal keeps the network's outline
         snapped = (mask if detection.class_name in FURRED_CLASSES
                    else snap_to_colour_edges(mask, image))
-        if detection.class_name == "person":  # hair is no colour edge: the head is kept
-            hair = hair_region(mask, detection.box)
-            snapped = np.where(hair, mask, snapped)
+        if detection.class_name == "person":  # nor is a jaw's retouched rim: it is kept
+            jaw = jaw_region(mask, detection.box)
+            snapped = np.where(jaw, mask, snapped)
         mask = clean_mask(snapped, keep=head)
         # the face is its main pieces (a stray pixel of it is no face to keep whole)
         face = drop_fragments(mask & head, min_px=0) if head is not None else None

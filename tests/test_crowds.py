@@ -244,10 +244,11 @@ def test_real_cards_follow_the_peoples_outlines(monkeypatch):
         assert (along < 40).mean() < 0.3, (along < 40).mean()
 
 
-def test_a_persons_head_keeps_its_outline_down_to_the_neck_but_not_the_shoulders():
-    """Hair and a retouched rim along a jaw are no colour edge: snapping cut them off, and the
-    fill smeared the rim. The shoulders are snapped (a pocket of backdrop beside them)."""
-    from kbbatch.segment import hair_region
+def test_a_persons_jaw_keeps_its_outline_down_to_the_neck_but_not_the_hair_or_shoulders():
+    """A retouched rim along a jaw is no colour edge the cut respects: snapping took it off the
+    face, and the fill smeared it. The hair above is snapped (kept, a strip of window beside
+    it travelled with the head), and so are the shoulders (a pocket of backdrop beside them)."""
+    from kbbatch.segment import jaw_region
 
     height, width = 400, 400
     person = np.zeros((height, width), np.uint8)
@@ -255,9 +256,10 @@ def test_a_persons_head_keeps_its_outline_down_to_the_neck_but_not_the_shoulders
     person[140:185, 175:225] = 1  # the neck, 50 px wide
     person[185:, 60:340] = 1  # the shoulders and body
     box = (60.0, 30.0, 340.0, 400.0)
-    region = hair_region(person.astype(bool), box)
+    region = jaw_region(person.astype(bool), box)
     rows, cols = np.nonzero(region)
-    assert region[30:150, 140:261].all(), "the head is snapped"
+    assert region[120:150, 140:261].all(), "the jaw is snapped"
+    assert not region[:80].any(), "the hair is kept as the network drew it"
     assert rows.max() < 185 + 0.1 * 280 + 1, "the zone reaches far below the neck"
     assert cols.min() > 100 and cols.max() < 300, "the shoulders' columns are in the zone"
 
