@@ -518,10 +518,16 @@ def extend_at_view(
 def _nearest_source_pixel(small_shape: tuple[int, int], size: tuple[int, int],
                           rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pixel of an image of small_shape that an enlargement to size (width, height) by
-    nearest neighbour gives pixels (rows, cols), as cv2.resize's INTER_NEAREST does."""
+    nearest neighbour gives pixels (rows, cols), computed as cv2.resize's INTER_NEAREST does
+    it (in doubles, through the inverse of the scale: at exact multiples that can pick the
+    pixel before the one integer arithmetic gives)."""
     small_height, small_width = small_shape
-    return (np.minimum(rows * small_height // size[1], small_height - 1),
-            np.minimum(cols * small_width // size[0], small_width - 1))
+
+    def nearest(index: np.ndarray, small: int, full: int) -> np.ndarray:
+        picked = np.floor(index * (1.0 / (full / small))).astype(np.int64)
+        return np.minimum(picked, small - 1)
+
+    return nearest(rows, small_height, size[1]), nearest(cols, small_width, size[0])
 
 
 def _enlarged_at(colour: np.ndarray, usable: np.ndarray, size: tuple[int, int],

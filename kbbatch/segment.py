@@ -227,7 +227,7 @@ def detect(image: np.ndarray) -> list[Detection]:
 
 def _box_mask(shape: tuple[int, int], box: tuple[float, float, float, float]) -> np.ndarray:
     mask = np.zeros(shape, bool)
-    x0, y0, x1, y1 = (int(round(v)) for v in box)
+    x0, y0, x1, y1 = (max(0, int(round(v))) for v in box)  # a negative start would wrap
     mask[y0:y1, x0:x1] = True
     return mask
 

@@ -245,9 +245,11 @@ def test_real_cards_follow_the_peoples_outlines(monkeypatch):
 
 
 def test_a_persons_jaw_keeps_its_outline_down_to_the_neck_but_not_the_hair_or_shoulders():
-    """A retouched rim along a jaw is no colour edge the cut respects: snapping took it off the
-    face, and the fill smeared it. The hair above is snapped (kept, a strip of window beside
-    it travelled with the head), and so are the shoulders (a pocket of backdrop beside them)."""
+    """The zone where the network's outline is kept: the jaw, for a retouched rim along it is no
+    colour edge the cut respects (snapped, it came off the face and the fill smeared it); not
+    the hair above, which is snapped (kept as drawn, a strip of window beside it travelled with
+    the head), nor the shoulders (a pocket of backdrop beside them). The messages say what
+    went wrong."""
     from kbbatch.segment import jaw_region
 
     height, width = 400, 400

@@ -38,6 +38,22 @@ def test_card_stands_on_the_ground_in_front_of_it():
     assert disparity[230, 100] > value
 
 
+def test_a_card_whose_outline_ends_short_of_its_foot_keeps_the_ground_below_off_it():
+    """A mask cut a few pixels short of the object's bottom edge in some columns left the
+    ground there farther than the card: a depth edge of its own across the object's foot, and
+    the move bit dark notches into a lantern's bottom edge (photo 20). Down to its lowest row
+    the card is one depth; a wide gap (between a person's feet) is left to the ground."""
+    image = sky_and_ground(90)
+    card = np.zeros((H, W), bool)
+    card[100:200, 150:210] = True  # stands on row 199 ...
+    card[195:200, 170:180] = False  # ... but its outline ends 5 rows short here
+    card[160:200, 185:195] = False  # and 40 rows short between its feet
+    disparity = popup_disparity(image, [(card, True)])
+    value = disparity[100, 160]
+    assert np.all(disparity[195:200, 170:180] == value), "a notch in the foot"
+    assert np.all(disparity[170:190, 185:195] < value), "the ground between the feet"
+
+
 def test_horizon_follows_the_sky_and_stays_above_where_objects_stand():
     assert estimate_horizon(sky_and_ground(90), []) == pytest.approx(90 / H, abs=0.02)
     assert estimate_horizon(sky_and_ground(150), [0.5]) <= 0.5 - 0.03 + 1e-9

@@ -41,6 +41,12 @@ thin structure (a launch tower): as one flat card its bars tear from what they s
 GROUNDED_EXCEPTIONS = ("bird",)
 """Classes that need not stand on the ground (they do not push the horizon up)."""
 
+CONTACT_GAP_PX = 8
+"""A card stands at the ground's disparity of its lowest row; where its outline ends up to this
+many rows (working px) above that row in a column, the ground there, farther than the card,
+goes onto the card. Left on the ground, the lantern's bottom edge that its mask cut 3 to 5 px
+short was a depth edge of its own, and the move bit dark notches into it."""
+
 
 def sky_mask(image: np.ndarray) -> np.ndarray:
     """Smooth, bright or blue pixels connected to the top edge."""
@@ -116,8 +122,22 @@ def popup_disparity(image: np.ndarray, cards: list[tuple[np.ndarray, bool]]) -> 
     # ones cover them where they overlap.
     groups = group_cards([mask for mask, _ in cards], [float(ground[b, 0]) for b in bottoms])
     for mask, value in sorted(groups, key=lambda card: card[1]):
-        disparity[mask] = value
+        disparity[down_to_contact(mask, CONTACT_GAP_PX)] = value
     return disparity
+
+
+def down_to_contact(mask: np.ndarray, gap_px: int) -> np.ndarray:
+    """mask, each column's outline extended down to the mask's lowest row where it ends at
+    most gap_px rows above it."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return mask
+    lowest = rows[-1]
+    height = mask.shape[0]
+    bottoms = height - 1 - np.argmax(mask[::-1], axis=0)  # each column's lowest pixel
+    short = mask.any(axis=0) & (bottoms < lowest) & (lowest - bottoms <= gap_px)
+    row_index = np.arange(height)[:, None]
+    return mask | (short & (row_index > bottoms) & (row_index <= lowest))
 
 
 class PopupDepth:
