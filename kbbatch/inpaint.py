@@ -509,8 +509,9 @@ def extend_at_view(
     # Enlarged from filled and background pixels only: a plain bilinear enlargement blends the
     # near side's colour (a magenta star, a dark suit, a soft edge) into the fill's border.
     usable = small_hole | ~(blocked | small_uncovered)
-    colour_at = _enlarged_at(small_colour, usable, (width, height), rows, cols)
     near_rows, near_cols = _nearest_source_pixel(small_depth.shape, (width, height), rows, cols)
+    colour_at = _enlarged_at(small_colour, usable, (width, height), rows, cols,
+                             (near_rows, near_cols))
     return points_at(view, rows, cols, small_depth[near_rows, near_cols],
                      np.clip(colour_at + 0.5, 0, 255).astype(np.uint8)), hole_count
 
@@ -531,11 +532,12 @@ def _nearest_source_pixel(small_shape: tuple[int, int], size: tuple[int, int],
 
 
 def _enlarged_at(colour: np.ndarray, usable: np.ndarray, size: tuple[int, int],
-                 rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+                 rows: np.ndarray, cols: np.ndarray, nearest: tuple[np.ndarray, np.ndarray]
+                 ) -> np.ndarray:
     """colour enlarged bilinearly to size (width, height) from its usable pixels alone
     (normalised interpolation), at pixels (rows, cols) only; where no usable pixel is near,
-    the nearest pixel's colour. (Only the hole pixels of a view become points: enlarging the
-    whole view cost more than the fill.)"""
+    the colour of their nearest pixels (_nearest_source_pixel's rows and columns). (Only the
+    hole pixels of a view become points: enlarging the whole view cost more than the fill.)"""
     small_height, small_width = usable.shape
 
     def taps(index: np.ndarray, small: int, full: int
@@ -558,9 +560,8 @@ def _enlarged_at(colour: np.ndarray, usable: np.ndarray, size: tuple[int, int],
             w = wy * wx * usable[ys, xs]
             weighted += w[:, None] * colour[ys, xs]
             weight += w
-    near_rows, near_cols = _nearest_source_pixel(usable.shape, size, rows, cols)
     return np.where(weight[:, None] > 1e-3, weighted / np.maximum(weight, 1e-3)[:, None],
-                    colour[near_rows, near_cols])
+                    colour[nearest])
 
 
 def visible_region(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:

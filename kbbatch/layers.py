@@ -297,7 +297,11 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # The rest concerns band pixels only.
     pixel = colour[band]
     back_here = back_mean[here]
-    front_here = np.where(has_foreground[here][:, None], front_mean[here], pixel)
+    spread_here = back_spread[here]  # the clean background's texture
+    background_here, foreground_here = has_background[here], has_foreground[here]
+    front_here = np.where(foreground_here[:, None], front_mean[here], pixel)
+    # how far a background colour may stray from its clean estimate: its texture, and noise
+    texture = BACKGROUND_SPREAD * spread_here + BACKGROUND_SLACK
     contrast = front_here - back_here
     spread = np.sum(contrast * contrast, axis=-1)
     along = np.sum((pixel - back_here) * contrast, axis=-1) / np.maximum(spread, 1e-6)
@@ -306,13 +310,12 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # magenta star is "less green" like the star, and read a third transparent): its colour
     # says nothing of the matte, which the guided filter gives instead.
     off_line = pixel - back_here - along[:, None] * contrast
-    allowed = BACKGROUND_SPREAD * back_spread[here] + BACKGROUND_SLACK
-    trust = trust * allowed**2 / (allowed**2 + np.sum(off_line * off_line, axis=-1))
-    trust = np.where(has_background[here] & has_foreground[here], trust, 0.0)
+    trust = trust * texture**2 / (texture**2 + np.sum(off_line * off_line, axis=-1))
+    trust = np.where(background_here & foreground_here, trust, 0.0)
     # Beyond the depth edge, a background's own texture moves a pixel along the line to the
     # object's colour too (a red sail towards magenta): only what exceeds that spread is the
     # object's, or the object carries a faint skirt of background texture as its soft edge.
-    texture_share = BACKGROUND_SPREAD * back_spread[here] / np.sqrt(np.maximum(spread, 1e-6))
+    texture_share = BACKGROUND_SPREAD * spread_here / np.sqrt(np.maximum(spread, 1e-6))
     beyond_edge = outside_px[band] > 0
     along = np.where(beyond_edge, (along - texture_share) / np.maximum(1 - texture_share, 0.1),
                      along)
@@ -349,10 +352,9 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     towards = np.sum(deviation * contrast, axis=-1) / np.maximum(spread, 1e-6)
     excess = towards - np.clip(towards, -texture_share, texture_share)
     back_behind = back_here + deviation - excess[:, None] * contrast
-    spread_allowed = BACKGROUND_SPREAD * back_spread[here][:, None] + BACKGROUND_SLACK
-    textured = has_background[here] & (back_spread[here] > MIRROR_SPREAD_MIN)
+    textured = background_here & (spread_here > MIRROR_SPREAD_MIN)
     back_behind = np.where(textured[:, None],
-                           _held_to(back_behind, np.clip(back_here, 0, 255), spread_allowed),
+                           _held_to(back_behind, np.clip(back_here, 0, 255), texture[:, None]),
                            back_here)
     first = np.round(np.clip(np.where(mostly_front, back_behind, front_here), 0, 255))
     share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
@@ -364,10 +366,9 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # cannot take (out of its gamut) is dropped: the start view then differs from the photo
     # there, which is less visible than a ghost.
     back_clean = np.clip(back_here, 0, 255)
-    texture = BACKGROUND_SPREAD * back_spread[here][:, None] + BACKGROUND_SLACK
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
-    tolerance = EDGE_SLACK + (texture - EDGE_SLACK) * from_edge
+    tolerance = EDGE_SLACK + (texture[:, None] - EDGE_SLACK) * from_edge
     kept = _held_to(second, back_clean, tolerance)
     strays = np.any(np.abs(kept - second) > 0.5, axis=-1, keepdims=True) & ~mostly_front
     first = np.where(strays, _into_gamut(_remainder(pixel, np.round(kept), 1 - share),
@@ -381,7 +382,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # A band pixel the matte left wholly to the background is held to the same allowance: near
     # the edge, what strays further is dropped (the start view loses a faint rim) rather than
     # left behind.
-    whole = np.where(has_background[here][:, None],
+    whole = np.where(background_here[:, None],
                      np.round(_held_to(pixel, back_clean, tolerance)), pixel)
     back_band = np.where(a <= 0.0, whole, np.where(mostly_front, first, second))
 
