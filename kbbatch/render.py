@@ -311,7 +311,7 @@ def render_frame(cloud: PointCloud, view: View, disparity_scale: float) -> np.nd
     buffers, number = _scratch(view.height_px, view.width_px)
     touched = _splat_view(cloud, view, disparity_scale, buffers, number)
     frame = np.empty((view.height_px, view.width_px, 3), np.uint8)
-    _finish_kernel(*buffers.arrays(), touched, frame)
+    _finish_kernel(*buffers.arrays(), np.int32(number), touched, frame)
     return frame
 
 
@@ -570,18 +570,33 @@ def _clear_cracks(front, cell, stamp, clear, back, frame, touched, crack_inv_z):
 
 
 @numba.njit(cache=True, nogil=True)
-def _finish_kernel(cell, front, stamp, clear, back, back_cell, touched, image):
+def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, image):
     """Composite, round, and give every empty pixel the colour of the farthest covered pixel
     found along its row and column (a cheap fill from the background side). Leaves cell
-    cleared for the next frame; front keeps 0 where a pixel was empty."""
+    cleared for the next frame; front keeps 0 where a pixel was empty.
+
+    A soft edge over nothing (a gap in a magnified surface behind it, or a hole) is filled
+    from the surface behind the soft pixels around it, and the edge composited over that:
+    in its own full colour, a faint fringe showed as dashes beside the object."""
     height, width = front.shape
     pixel = np.empty(3, np.float32)
+    veiled = 0
     for index in touched:  # soft pixels: their composite, premultiplied by the weight
         yy = index // width
         xx = index % width
         weight = cell[yy, xx, _WEIGHT]
         if front[yy, xx] > 0 and weight > 0 and clear[yy, xx] > 0:
-            _composite(cell, stamp, clear, back, back_cell, stamp[yy, xx], yy, xx, pixel)
+            alpha = max(weight - clear[yy, xx], np.float32(0.0)) / weight
+            if back[yy, xx] <= 0 and alpha < np.float32(OPAQUE_ALPHA):
+                # over nothing: kept premultiplied in back_cell until its fill is known
+                for c in range(3):
+                    back_cell[yy, xx, c] = cell[yy, xx, c] / weight
+                back_cell[yy, xx, _WEIGHT] = alpha
+                clear[yy, xx] = -1.0
+                front[yy, xx] = 0.0
+                veiled += 1
+                continue
+            _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, pixel)
             for c in range(3):
                 cell[yy, xx, c] = pixel[c] * weight
             clear[yy, xx] = 0.0
@@ -599,45 +614,77 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, touched, image):
                 here[c] = 0.0
     if empty == 0:
         return
-    # the nearest covered pixel left, right, above and below, and whether it is close by
-    found_y = np.empty(4, np.int64)
-    found_x = np.empty(4, np.int64)
-    near = np.empty(4, np.bool_)
+    found = np.empty((4, 2), np.int64)
     for yy in range(height):
         for xx in range(width):
-            if front[yy, xx] > 0:
+            if front[yy, xx] > 0 or (stamp[yy, xx] == frame and clear[yy, xx] < 0):
                 continue
-            found_y[:] = -1
-            found_x[:] = -1
-            near[:] = False
-            for k, (step_y, step_x) in enumerate(((0, -1), (0, 1), (-1, 0), (1, 0))):
-                cy = yy + step_y
-                cx = xx + step_x
-                steps = 1
-                while 0 <= cy < height and 0 <= cx < width and front[cy, cx] == 0:
-                    cy += step_y
-                    cx += step_x
-                    steps += 1
-                if 0 <= cy < height and 0 <= cx < width:
-                    found_y[k], found_x[k] = cy, cx
-                    near[k] = steps <= FILL_CRACK_PX
-            # A crack (covered on both sides of a row or a column within FILL_CRACK_PX) is
-            # closed from those two sides; a hole from the farthest of all four.
-            crack_h = near[0] and near[1]
-            crack_v = near[2] and near[3]
-            best_inv = np.float32(np.inf)
-            best_y = -1
-            best_x = -1
-            for k in range(4):
-                if found_y[k] < 0 or ((crack_h or crack_v)
-                                      and not (crack_h if k < 2 else crack_v)):
-                    continue
-                if front[found_y[k], found_x[k]] < best_inv:
-                    best_inv = front[found_y[k], found_x[k]]
-                    best_y = found_y[k]
-                    best_x = found_x[k]
+            best_y, best_x = _background_source(front, stamp, back, frame, False, yy, xx,
+                                                found)
             for c in range(3):
                 image[yy, xx, c] = image[best_y, best_x, c] if best_y >= 0 else 0
+    if veiled == 0:
+        return
+    for index in touched:
+        yy = index // width
+        xx = index % width
+        if clear[yy, xx] >= 0:
+            continue
+        best_y, best_x = _background_source(front, stamp, back, frame, True, yy, xx, found)
+        see_through = np.float32(1.0) - back_cell[yy, xx, _WEIGHT]
+        soft_source = best_y >= 0 and stamp[best_y, best_x] == frame and back[best_y, best_x] > 0
+        for c in range(3):
+            if soft_source:
+                behind = back_cell[best_y, best_x, c] / back_cell[best_y, best_x, _WEIGHT]
+            else:
+                behind = np.float32(image[best_y, best_x, c]) if best_y >= 0 else np.float32(0)
+            value = back_cell[yy, xx, c] + see_through * behind
+            image[yy, xx, c] = min(255, int(value + np.float32(0.5)))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _background_source(front, stamp, back, frame, behind_soft, yy, xx, found):
+    """The pixel an empty pixel takes its colour from: of the nearest covered pixels to its
+    left, right, above and below, the farthest. A crack (covered on both sides of a row or a
+    column within FILL_CRACK_PX) is closed from those two sides. With behind_soft, a soft
+    pixel counts at the depth of the surface behind it. (-1, -1) when none is found."""
+    height, width = front.shape
+    near_h = 0
+    near_v = 0
+    for k, (step_y, step_x) in enumerate(((0, -1), (0, 1), (-1, 0), (1, 0))):
+        cy = yy + step_y
+        cx = xx + step_x
+        steps = 1
+        while 0 <= cy < height and 0 <= cx < width and front[cy, cx] == 0:
+            cy += step_y
+            cx += step_x
+            steps += 1
+        inside = 0 <= cy < height and 0 <= cx < width
+        found[k, 0] = cy if inside else -1
+        found[k, 1] = cx
+        if inside and steps <= FILL_CRACK_PX:
+            if k < 2:
+                near_h += 1
+            else:
+                near_v += 1
+    crack_h = near_h == 2
+    crack_v = near_v == 2
+    best_inv = np.float32(np.inf)
+    best_y = -1
+    best_x = -1
+    for k in range(4):
+        cy = found[k, 0]
+        cx = found[k, 1]
+        if cy < 0 or ((crack_h or crack_v) and not (crack_h if k < 2 else crack_v)):
+            continue
+        surface = front[cy, cx]
+        if behind_soft and stamp[cy, cx] == frame and back[cy, cx] > 0:
+            surface = back[cy, cx]
+        if surface < best_inv:
+            best_inv = surface
+            best_y = cy
+            best_x = cx
+    return best_y, best_x
 
 
 def to_uint8(colour: np.ndarray) -> np.ndarray:

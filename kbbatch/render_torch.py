@@ -271,8 +271,25 @@ class TorchRenderer:
         colour = torch.where(over_back[:, None], composite,
                              torch.where(soft_pixel[:, None], own, opaque_colour))
         image = (colour + 0.5).floor().clamp(0, 255).to(torch.uint8)
-        image = image.view(len(views), height, width, 3)
-        return _fill_from_background(image, front.view(len(views), height, width))
+        # A soft edge over nothing is filled as a hole, from the surfaces behind the soft
+        # pixels around it, and composited over that fill.
+        veiled = soft_pixel & (back <= 0) & (front > 0) & (front_alpha < OPAQUE_ALPHA)
+        front = torch.where(veiled, 0.0, front)
+        shape = (len(views), height, width)
+        image = _fill_from_background(image.view(*shape, 3), front.view(shape))
+        if not bool(veiled.any()):
+            return image
+        behind_soft = soft_pixel & (back > 0)
+        behind = torch.where(behind_soft[:, None],
+                             back_cell[:, :3] / back_cell[:, 3:].clamp(min=MIN_SPLAT_WEIGHT ** 2),
+                             image.view(-1, 3).float())
+        solid = torch.where(behind_soft, back, front)
+        behind = _fill_from_background(behind.view(*shape, 3), front.view(shape),
+                                       solid.view(shape)).view(-1, 3)
+        premultiplied = cell[:, :3] / total.clamp(min=MIN_SPLAT_WEIGHT)[:, None]
+        veil = premultiplied + (1 - front_alpha)[:, None] * behind
+        veil = (veil + 0.5).floor().clamp(0, 255).to(torch.uint8)
+        return torch.where(veiled[:, None], veil, image.view(-1, 3)).view(*shape, 3)
 
 
 def _cracks(solid: torch.Tensor, crack_z: float) -> torch.Tensor:
@@ -290,9 +307,11 @@ def _cracks(solid: torch.Tensor, crack_z: float) -> torch.Tensor:
     return found
 
 
-def _fill_from_background(image: torch.Tensor, front: torch.Tensor) -> torch.Tensor:
+def _fill_from_background(image: torch.Tensor, front: torch.Tensor,
+                          solid: torch.Tensor | None = None) -> torch.Tensor:
     """Every empty pixel (front 0) takes the colour of the farthest covered pixel among the
-    nearest ones to its left, right, above and below (render's finishing fill)."""
+    nearest ones to its left, right, above and below (render's finishing fill); farthest by
+    solid, the depth of what lies behind a soft pixel, where given."""
     empty = front <= 0
     holes = empty.view(-1).nonzero().squeeze(1)
     if holes.numel() == 0:
@@ -301,7 +320,7 @@ def _fill_from_background(image: torch.Tensor, front: torch.Tensor) -> torch.Ten
     device = front.device
     hole_x = holes % width
     hole_y = holes // width % height
-    flat_front = front.view(-1)
+    flat_front = (front if solid is None else solid).reshape(-1)
     candidates_front, candidates_index, candidates_near = [], [], []
     for dim, reverse in ((2, False), (2, True), (1, False), (1, True)):
         length = front.shape[dim]

@@ -222,3 +222,33 @@ def test_cracks_in_a_magnified_ground_are_closed_from_the_ground_itself():
     assert not render(cloud, closer, DISPARITY_SCALE).covered[ground].all(), "no crack to close"
     frame = render_frame(cloud, closer, DISPARITY_SCALE)
     assert frame[ground].max() < 120, "sky fetched into a crack of the ground"
+
+
+def faint_veil_over_a_wall_with_gaps() -> tuple[PointCloud, View]:
+    """A grey wall with pinholes (as a magnified surface has between its points) and a faint
+    red veil (soft points of alpha 0.2) in front of it, seen head-on: each point lands on one
+    pixel, so the veil's points land in the wall's gaps too."""
+    view = working_view(SCENE, (0.0, 0.0, 0.0))
+    gaps = np.zeros((H, W), bool)
+    gaps[3::5, 2::7] = True
+    wall = back_project(np.full((H, W, 3), 200, np.uint8), np.full((H, W), FAR, np.float32),
+                        view, keep=~gaps)
+    veil = back_project(np.full((H, W, 3), (255, 0, 0), np.uint8),
+                        np.full((H, W), 0.5 * FAR, np.float32), view,
+                        alpha=np.full((H, W), 51, np.uint8))
+    return wall.extended(veil), view
+
+
+def test_a_faint_soft_point_in_a_gap_of_the_surface_behind_shows_faintly():
+    """The giraffe's neck left short brown dashes on the sky at 1080p: a soft-edge point of
+    the neck that landed where no point of the magnified sky did kept its own, full colour.
+    Such a pixel is filled from the surface around it and the soft point composited over."""
+    cloud, view = faint_veil_over_a_wall_with_gaps()
+    wall = np.s_[:cloud.opaque_count]
+    plain = render(PointCloud(cloud.x[wall], cloud.y[wall], cloud.z[wall], cloud.colour[wall]),
+                   view, DISPARITY_SCALE)
+    assert (~plain.covered).sum() > 100, "the wall must have gaps for this test"
+    frame = render_frame(cloud, view, DISPARITY_SCALE).astype(int)
+    # Over the wall, the veil makes red 0.2 x 255 + 0.8 x 200 = 211 and green 0.8 x 200 = 160.
+    assert frame[..., 1].min() >= 158, "a gap shows the veil's own colour, not the wall's"
+    assert np.abs(frame[..., 0] - 211).max() <= 2 and frame[..., 1].max() <= 162

@@ -17,7 +17,15 @@ from kbbatch.render import PointCloud, back_project, render_frame
 
 from .conftest import shared_photos
 from .test_crowds import real_models_or_skip
-from .test_render import DISPARITY_SCALE, FAR, NEAR, SCENE, card_scene, shifted_view
+from .test_render import (
+    DISPARITY_SCALE,
+    FAR,
+    NEAR,
+    SCENE,
+    card_scene,
+    faint_veil_over_a_wall_with_gaps,
+    shifted_view,
+)
 
 torch = pytest.importorskip("torch", reason="torch is not installed (pip install "
                             "'kbbatch[torch]'): the GPU renderer is not tested")
@@ -65,6 +73,15 @@ def test_soft_card_frames_match_numba_at_every_move():
         assert psnr_db(frame, expected) >= MIN_PSNR_DB, view
         # A magnified view opens cracks and holes: both renderers fill them the same way.
         assert (np.abs(frame.astype(int) - expected.astype(int)).max(axis=-1) > 2).mean() < 1e-3
+
+
+def test_a_faint_soft_edge_over_a_gap_is_composited_over_its_fill_as_numba_does():
+    cloud, view = faint_veil_over_a_wall_with_gaps()
+    for shifted in (view, shifted_view(3.0, 1.3)):
+        frame = TorchRenderer(cloud, "cpu", DISPARITY_SCALE).render_frames([shifted]).numpy()[0]
+        expected = render_frame(cloud, shifted, DISPARITY_SCALE)
+        assert np.abs(frame.astype(int) - expected.astype(int)).max() <= 1, shifted
+    assert frame[..., 1].min() >= 150, "a gap shows the veil's own colour"
 
 
 def test_a_launch_of_several_frames_equals_frames_one_by_one():
