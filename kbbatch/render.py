@@ -145,6 +145,9 @@ def points_at(view: View, rows: np.ndarray, cols: np.ndarray, depth: np.ndarray,
 
 
 _WEIGHT = 3  # a cell holds red, green, blue weighted by weight x alpha, then the weight
+_ON_OPAQUE = -1.0
+"""back_cell's weight where a soft front, with no surface behind it, blends into an opaque
+one at its own depth (the inner side of an object's soft edge)."""
 OPAQUE_ALPHA = 0.99
 """A pixel whose front surface has at least this alpha hides whatever lies behind it."""
 
@@ -437,6 +440,8 @@ def _splat_kernel(
                         stamp[yy, xx] = frame
                         clear[yy, xx] = 0.0
                         back[yy, xx] = 0.0
+                        # an opaque surface here already: what this point blends into
+                        back_cell[yy, xx, _WEIGHT] = _ON_OPAQUE if front[yy, xx] > 0 else 0.0
                         touched[touched_count] = yy * width + xx
                         touched_count += 1
                     _soft_layer_z(front, cell, clear, back, back_cell, yy, xx, w, inv_zs[j],
@@ -577,7 +582,9 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
 
     A soft edge over nothing (a gap in a magnified surface behind it, or a hole) is filled
     from the surface behind the soft pixels around it, and the edge composited over that:
-    in its own full colour, a faint fringe showed as dashes beside the object."""
+    in its own full colour, a faint fringe showed as dashes beside the object. A soft edge
+    blended into the opaque inside of its object keeps its own colour: what it lacks of
+    full alpha there is the splat's blur, not background."""
     height, width = front.shape
     pixel = np.empty(3, np.float32)
     veiled = 0
@@ -587,7 +594,8 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
         weight = cell[yy, xx, _WEIGHT]
         if front[yy, xx] > 0 and weight > 0 and clear[yy, xx] > 0:
             alpha = max(weight - clear[yy, xx], np.float32(0.0)) / weight
-            if back[yy, xx] <= 0 and alpha < np.float32(OPAQUE_ALPHA):
+            if (back[yy, xx] <= 0 and back_cell[yy, xx, _WEIGHT] != _ON_OPAQUE
+                    and alpha < np.float32(OPAQUE_ALPHA)):
                 # over nothing: kept premultiplied in back_cell until its fill is known
                 for c in range(3):
                     back_cell[yy, xx, c] = cell[yy, xx, c] / weight

@@ -247,6 +247,7 @@ class TorchRenderer:
         opaque_behind = soft_front & (front_opaque > 0) & (front_opaque >= back - soft_z)
         back_cell += torch.where(opaque_behind[:, None], cell_opaque, 0.0)
         cell = torch.where(soft_front[:, None], cell_soft, cell_opaque + cell_soft)[:size]
+        on_opaque = (front_opaque > 0)[:size]
         front = torch.where(soft_front, front_soft, torch.maximum(front_opaque, blended_front))
         del cell_opaque, cell_soft, front_opaque, front_soft, blended_front, lowest
         front, clear, back, back_cell = front[:size], clear[:size], back[:size], back_cell[:size]
@@ -272,8 +273,10 @@ class TorchRenderer:
                              torch.where(soft_pixel[:, None], own, opaque_colour))
         image = (colour + 0.5).floor().clamp(0, 255).to(torch.uint8)
         # A soft edge over nothing is filled as a hole, from the surfaces behind the soft
-        # pixels around it, and composited over that fill.
-        veiled = soft_pixel & (back <= 0) & (front > 0) & (front_alpha < OPAQUE_ALPHA)
+        # pixels around it, and composited over that fill (one blended into an opaque
+        # surface at its depth keeps its own colour).
+        veiled = (soft_pixel & (back <= 0) & ~on_opaque & (front > 0)
+                  & (front_alpha < OPAQUE_ALPHA))
         front = torch.where(veiled, 0.0, front)
         shape = (len(views), height, width)
         image = _fill_from_background(image.view(*shape, 3), front.view(shape))

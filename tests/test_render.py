@@ -252,3 +252,35 @@ def test_a_faint_soft_point_in_a_gap_of_the_surface_behind_shows_faintly():
     # Over the wall, the veil makes red 0.2 x 255 + 0.8 x 200 = 211 and green 0.8 x 200 = 160.
     assert frame[..., 1].min() >= 158, "a gap shows the veil's own colour, not the wall's"
     assert np.abs(frame[..., 0] - 211).max() <= 2 and frame[..., 1].max() <= 162
+
+
+def soft_rim_on_a_card() -> tuple[PointCloud, PointCloud, PointCloud, View]:
+    """A red card with a soft rim (alpha 0.5) down its right side, before a grey wall whose
+    points behind the card are not in the cloud (as behind a layer's opaque inside), seen
+    zoomed out so that the rim's splats share pixels with the card's. Returns the cloud, the
+    card, the rim and the view."""
+    view = working_view(SCENE, (0.0, 0.0, 0.0))
+    inside = np.zeros((H, W), bool)
+    inside[40:80, 60:100] = True
+    rim = np.zeros((H, W), bool)
+    rim[40:80, 100] = True
+    red = np.full((H, W, 3), (255, 0, 0), np.uint8)
+    near = np.full((H, W), NEAR, np.float32)
+    wall = back_project(np.full((H, W, 3), 200, np.uint8), np.full((H, W), FAR, np.float32),
+                        view, keep=~inside)
+    card = back_project(red, near, view, keep=inside)
+    edge = back_project(red, near, view, keep=rim, alpha=np.full((H, W), 128, np.uint8))
+    return wall.extended(card).extended(edge), card, edge, shifted_view(0.0, 0.8)
+
+
+def test_a_soft_edge_blended_into_its_objects_opaque_inside_keeps_the_objects_colour():
+    """On the inner side of a soft edge the object's opaque points and its soft ones share
+    pixels, with nothing behind (the object hides it). What such a pixel lacks of full alpha
+    is the splats' blur; composited over the fill it showed the background through the
+    object's rim (a paler inner edge on a synthetic cut-out)."""
+    cloud, card, rim, view = soft_rim_on_a_card()
+    frame = render_frame(cloud, view, DISPARITY_SCALE).astype(int)
+    blended = (render(card, view, DISPARITY_SCALE).covered
+               & (render(rim, view, DISPARITY_SCALE).weight > 0))
+    assert blended.sum() >= 20, "the rim must share pixels with the card's inside"
+    assert (frame[blended] == (255, 0, 0)).all(), "the object's rim took background colour"

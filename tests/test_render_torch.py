@@ -25,6 +25,7 @@ from .test_render import (
     card_scene,
     faint_veil_over_a_wall_with_gaps,
     shifted_view,
+    soft_rim_on_a_card,
 )
 
 torch = pytest.importorskip("torch", reason="torch is not installed (pip install "
@@ -82,6 +83,9 @@ def test_a_faint_soft_edge_over_a_gap_is_composited_over_its_fill_as_numba_does(
         expected = render_frame(cloud, shifted, DISPARITY_SCALE)
         assert np.abs(frame.astype(int) - expected.astype(int)).max() <= 1, shifted
     assert frame[..., 1].min() >= 150, "a gap shows the veil's own colour"
+    cloud, _, _, view = soft_rim_on_a_card()
+    frame = TorchRenderer(cloud, "cpu", DISPARITY_SCALE).render_frames([view]).numpy()[0]
+    np.testing.assert_array_equal(frame, render_frame(cloud, view, DISPARITY_SCALE))
 
 
 def test_a_launch_of_several_frames_equals_frames_one_by_one():
