@@ -74,6 +74,11 @@ MIRROR_DEPTH_MARGIN = 0.05
 """A mirrored texture comes from pixels no nearer than the far side of the edge it continues,
 less this fraction of its depth: never from the object itself."""
 
+MIRROR_NORMAL_SMOOTH_PX = 2.0
+"""The distance to the clean background is smoothed this much before its gradient gives the
+mirror's direction: mirrored through each pixel's nearest clean pixel, a slanted border's
+stairs turned the mirror from pixel to pixel, and the texture behind came out saw-toothed."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -167,36 +172,78 @@ def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
 def nearest_pixels(mask: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of the nearest pixel of mask (which must have one) to each pixel of
     where (in np.nonzero order)."""
-    _, labels = cv2.distanceTransformWithLabels((~mask).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
+    rows, cols, _ = _nearest_with_distance(mask, where)
+    return rows, cols
+
+
+def _nearest_with_distance(mask: np.ndarray, where: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """nearest_pixels, and the distance to mask of every pixel (an image)."""
+    distance, labels = cv2.distanceTransformWithLabels(
+        (~mask).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
     mask_rows, mask_cols = np.nonzero(mask)
     by_label = np.zeros((int(labels.max()) + 1, 2), np.int64)
     by_label[labels[mask_rows, mask_cols]] = np.stack([mask_rows, mask_cols], axis=1)
     nearest = by_label[labels[where]]
-    return nearest[:, 0], nearest[:, 1]
+    return nearest[:, 0], nearest[:, 1], distance
+
+
+_REMAP_CHUNK = 1024
+"""cv2.remap takes maps of fewer than 32767 rows: a list of pixels goes in rows this long."""
 
 
 def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
                      depth: np.ndarray, far_depth: np.ndarray) -> np.ndarray:
-    """For each pixel of where, the colour of the pixel mirrored through its nearest clean
-    pixel (that nearest pixel itself when the mirror falls off): the clean texture continued
-    across the region's border, seamless there.
+    """For each pixel of where, the colour of the pixel mirrored across the border of the
+    clean pixels, along the border's normal and sampled bilinearly (its nearest clean pixel
+    where the mirror falls off): the clean texture continued across the region's border,
+    seamless there and smooth along it.
 
     The mirror may land on any pixel outside where whose depth (per image pixel) is at least
     the pixel's far_depth (per pixel of where), not only on clean ones: those may be a thin
     strip (between the band and the reach of the depth edge), and mirrors falling off it took
     one pixel's colour across the band as a smooth streak."""
     ys, xs = np.nonzero(where)
-    if not clean.any():
+    if not clean.any() or len(ys) == 0:
         return colour[ys, xs]
-    near_y, near_x = nearest_pixels(clean, where)
-    mirror_y, mirror_x = 2 * near_y - ys, 2 * near_x - xs
+    near_y, near_x, distance = _nearest_with_distance(clean, where)
+    fallback = colour[near_y, near_x].astype(np.float32)
+    smooth = cv2.GaussianBlur(distance, (0, 0), MIRROR_NORMAL_SMOOTH_PX)
+    slope_x = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)[ys, xs] / 8
+    slope_y = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)[ys, xs] / 8
+    slope = np.hypot(slope_x, slope_y)
+    # on a ridge of the distance (between two borders) the normal is undefined: there the
+    # mirror goes through the nearest clean pixel
+    steep = slope > 0.3
+    reach = 2 * distance[ys, xs] / np.maximum(slope, 1e-6)
+    mirror_x = np.where(steep, xs - reach * slope_x, 2 * near_x - xs)
+    mirror_y = np.where(steep, ys - reach * slope_y, 2 * near_y - ys)
+
+    # where the mirror lands: the four pixels it samples bilinearly, then the nearest one;
+    # each must be a background pixel
+    left, top = np.floor(mirror_x).astype(np.int32), np.floor(mirror_y).astype(np.int32)
+    land_rows = np.stack([top, top, top + 1, top + 1,
+                          np.round(mirror_y).astype(np.int32)])
+    land_cols = np.stack([left, left + 1, left, left + 1,
+                          np.round(mirror_x).astype(np.int32)])
     height, width = clean.shape
-    inside = (mirror_y >= 0) & (mirror_y < height) & (mirror_x >= 0) & (mirror_x < width)
-    landing_y, landing_x = mirror_y[inside], mirror_x[inside]
-    inside[inside] = ~where[landing_y, landing_x] & (
-        depth[landing_y, landing_x] >= far_depth[inside] * (1.0 - MIRROR_DEPTH_MARGIN))
-    return colour[np.where(inside, mirror_y, near_y), np.where(inside, mirror_x, near_x)]
+    inside = (land_rows >= 0) & (land_rows < height) & (land_cols >= 0) & (land_cols < width)
+    flat = (np.clip(land_rows, 0, height - 1).astype(np.int64) * width
+            + np.clip(land_cols, 0, width - 1))
+    lands = inside & ~where.ravel()[flat] & (
+        depth.ravel()[flat] >= far_depth * (1.0 - MIRROR_DEPTH_MARGIN))
+    bilinear = lands[:4].all(axis=0)
+    nearest = ~bilinear & lands[4]
+    count = len(ys)
+    rows = -(-count // _REMAP_CHUNK)
+    map_x = np.zeros(rows * _REMAP_CHUNK, np.float32)
+    map_y = np.zeros(rows * _REMAP_CHUNK, np.float32)
+    map_x[:count] = np.where(nearest, np.round(mirror_x), mirror_x)
+    map_y[:count] = np.where(nearest, np.round(mirror_y), mirror_y)
+    sampled = cv2.remap(np.asarray(colour, np.float32), map_x.reshape(rows, _REMAP_CHUNK),
+                        map_y.reshape(rows, _REMAP_CHUNK), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:count]
+    return np.where((bilinear | nearest)[:, None], sampled, fallback)
 
 
 def _window_around(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
