@@ -361,10 +361,31 @@ def _fill_from_background(image: torch.Tensor, front: torch.Tensor,
 
 
 def render_batches(cloud: PointCloud, views: Sequence[View], disparity_scale: float,
-                   device: str) -> Iterator[np.ndarray]:
+                   device: str, output_size: tuple[int, int] | None = None
+                   ) -> Iterator[np.ndarray]:
     """Finished frames of a clip in launches of several: (B, H, W, 3) uint8 arrays in the
-    order of views. The cloud goes to the device once, before the first launch."""
+    order of views. The cloud goes to the device once, before the first launch. With
+    output_size (width, height), frames rendered smaller (pipeline.render_view) are enlarged
+    to it with linear interpolation, as cv2.resize does; a launch holds views of one size."""
     renderer = TorchRenderer(cloud, device, disparity_scale)
     step = renderer.frames_per_launch()
-    for start in range(0, len(views), step):
-        yield renderer.render_frames(views[start:start + step]).cpu().numpy()
+    start = 0
+    while start < len(views):
+        size = (views[start].width_px, views[start].height_px)
+        stop = start + 1
+        while (stop < len(views) and stop - start < step
+               and (views[stop].width_px, views[stop].height_px) == size):
+            stop += 1
+        frames = renderer.render_frames(views[start:stop])
+        if output_size is not None and size != output_size:
+            frames = _enlarged(frames, output_size)
+        yield frames.cpu().numpy()
+        start = stop
+
+
+def _enlarged(frames: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """(B, h, w, 3) uint8 frames enlarged to size (width, height), linearly."""
+    planar = frames.permute(0, 3, 1, 2).float()
+    planar = torch.nn.functional.interpolate(planar, size=(size[1], size[0]), mode="bilinear",
+                                             align_corners=False)
+    return (planar + 0.5).floor().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 
+import cv2
 import numpy as np
 import pytest
 
@@ -12,7 +13,7 @@ from kbbatch.batch import run_folder
 from kbbatch.camera import working_view
 from kbbatch.device import TORCH_CPU
 from kbbatch.images import read_image
-from kbbatch.pipeline import ClipOptions, frame_times, prefetched, prepare_scene
+from kbbatch.pipeline import ClipOptions, frame_times, prefetched, prepare_scene, render_view
 from kbbatch.render import PointCloud, back_project, render_frame
 
 from .conftest import shared_photos
@@ -22,6 +23,8 @@ from .test_render import (
     FAR,
     NEAR,
     SCENE,
+    H,
+    W,
     card_scene,
     faint_veil_over_a_wall_with_gaps,
     shifted_view,
@@ -30,7 +33,7 @@ from .test_render import (
 
 torch = pytest.importorskip("torch", reason="torch is not installed (pip install "
                             "'kbbatch[torch]'): the GPU renderer is not tested")
-from kbbatch.render_torch import TorchRenderer  # noqa: E402
+from kbbatch.render_torch import TorchRenderer, render_batches  # noqa: E402
 
 MIN_PSNR_DB = 50.0
 """The torch renderer must make the same frames as the numba one, to this PSNR."""
@@ -86,6 +89,20 @@ def test_a_faint_soft_edge_over_a_gap_is_composited_over_its_fill_as_numba_does(
     cloud, _, _, view = soft_rim_on_a_card()
     frame = TorchRenderer(cloud, "cpu", DISPARITY_SCALE).render_frames([view]).numpy()[0]
     np.testing.assert_array_equal(frame, render_frame(cloud, view, DISPARITY_SCALE))
+
+
+def test_frames_rendered_smaller_are_enlarged_as_the_cpu_path_does():
+    cloud = soft_card_cloud()
+    full = [shifted_view(0.0), shifted_view(4.0)]
+    views = full[:1] + [render_view(view, 1.8) for view in full] + full[1:]
+    assert views[1].width_px < W, "the test needs views rendered smaller"
+    frames = np.concatenate(list(render_batches(cloud, views, DISPARITY_SCALE, "cpu", (W, H))))
+    assert frames.shape == (4, H, W, 3)
+    for view, frame in zip(views, frames, strict=True):
+        expected = render_frame(cloud, view, DISPARITY_SCALE)
+        if view.width_px != W:
+            expected = cv2.resize(expected, (W, H), interpolation=cv2.INTER_LINEAR)
+        assert np.abs(frame.astype(int) - expected.astype(int)).max() <= 1
 
 
 def test_a_launch_of_several_frames_equals_frames_one_by_one():

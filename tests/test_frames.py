@@ -1,0 +1,60 @@
+"""Output frames of a tight crop: rendered smaller where points land apart, then enlarged."""
+
+import cv2
+import numpy as np
+
+from kbbatch.camera import Crop, Plan, View, crop_at, working_size
+from kbbatch.pipeline import (
+    MAX_RENDER_SPACING_PX,
+    ClipOptions,
+    frame_at,
+    prepare_scene,
+    render_view,
+)
+from kbbatch.presets import load_preset, with_overrides
+
+
+def test_a_frame_is_rendered_smaller_by_the_point_spacing_in_whole_steps():
+    view = View((0.0, 0.0, 0.0), 1000.0, 960.0, 540.0, 1920, 1080)
+    assert render_view(view, 1.25) is view  # the splats still blend neighbours
+    assert render_view(view, 0.7) is view
+    small = render_view(view, 1.8)
+    assert (small.width_px, small.height_px) == (1376, 774)  # 86 of 120 steps of 16 x 9
+    assert 1.28 < 1.8 * small.width_px / 1920 <= MAX_RENDER_SPACING_PX  # points 1.3 px apart
+    scale = small.width_px / 1920
+    assert small.height_px / 1080 == scale
+    assert (small.focal_px, small.principal_x_px, small.principal_y_px) == (
+        1000.0 * scale, 960.0 * scale, 540.0 * scale)
+    odd = View((0.0, 0.0, 0.0), 1000.0, 500.5, 300.5, 1001, 601)  # no common divisor
+    assert render_view(odd, 1.8) is odd
+
+
+def test_a_tight_crop_of_a_small_photo_has_no_stair_steps_at_1080p():
+    """Where points land 1.8 px apart, bilinear splats no longer interpolate between them:
+    each pixel took its nearest point, and a slanted edge of a small photo came out as stairs
+    of two-pixel steps at 1080p (a shoulder against a wall, photo 03). Without parallax the
+    end frame must be the crop of the photo enlarged with linear interpolation."""
+    height, width = 90, 160
+    rows, cols = np.mgrid[0:height, 0:width]
+    photo = np.where(((cols - 0.6 * rows) > 60)[..., None], 230, 30).astype(np.uint8)
+    photo = np.repeat(photo, 3, axis=2)
+    preset = with_overrides(load_preset("slideshow"), width_px=1920, height_px=1080)
+    work_w, work_h = working_size(width, height)
+    plan = Plan(Crop(work_w / 2, work_h / 2, work_w, work_h),
+                Crop(work_w / 2, work_h / 2, work_w / 1.5, work_h / 1.5),
+                planner="manifest", parallax=False)
+    prepared = prepare_scene(photo, None, preset, ClipOptions(threads=1, cache_depth=False),
+                             {}, plan=plan)
+    frame = frame_at(prepared, preset, 1.0).astype(np.float32)
+    crop, to_photo = crop_at(plan, 1.0), width / work_w
+    step_x, step_y = crop.width_px * to_photo / 1920, crop.height_px * to_photo / 1080
+    matrix = np.array([[step_x, 0, crop.left_px * to_photo + 0.5 * step_x - 0.5],
+                       [0, step_y, crop.top_px * to_photo + 0.5 * step_y - 0.5]], np.float32)
+    ideal = cv2.warpAffine(photo.astype(np.float32), matrix, (1920, 1080),
+                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    error = np.abs(frame - ideal).mean(axis=-1)
+    edge = cv2.dilate((np.abs(cv2.Sobel(ideal.mean(axis=-1), cv2.CV_32F, 1, 0)) > 1)
+                      .astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert edge.sum() > 5000
+    assert error[~edge].max() < 1, "the flat sides changed"
+    assert error[edge].mean() < 2, f"stair steps: {error[edge].mean():.2f} levels off"
