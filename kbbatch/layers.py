@@ -189,7 +189,15 @@ def _nearest_with_distance(mask: np.ndarray, where: np.ndarray
 
 
 _REMAP_CHUNK = 1024
-"""cv2.remap takes maps of fewer than 32767 rows: a list of pixels goes in rows this long."""
+"""cv2.remap takes maps (and images) of fewer than 32767 rows and columns: a list of pixels
+goes in rows this long."""
+
+_SOBEL_GAIN = 8
+"""A 3x3 Sobel filter's response to a unit slope."""
+
+_RIDGE_SLOPE = 0.3
+"""Where the smoothed distance to the clean pixels rises slower than this per pixel, the pixel
+lies on a ridge between two borders, and has no one normal to mirror along."""
 
 
 def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
@@ -209,23 +217,24 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     near_y, near_x, distance = _nearest_with_distance(clean, where)
     fallback = colour[near_y, near_x].astype(np.float32)
     smooth = cv2.GaussianBlur(distance, (0, 0), MIRROR_NORMAL_SMOOTH_PX)
-    slope_x = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)[ys, xs] / 8
-    slope_y = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)[ys, xs] / 8
+    slope_x = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)[ys, xs] / _SOBEL_GAIN
+    slope_y = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)[ys, xs] / _SOBEL_GAIN
     slope = np.hypot(slope_x, slope_y)
     # on a ridge of the distance (between two borders) the normal is undefined: there the
     # mirror goes through the nearest clean pixel
-    steep = slope > 0.3
+    steep = slope > _RIDGE_SLOPE
     reach = 2 * distance[ys, xs] / np.maximum(slope, 1e-6)
     mirror_x = np.where(steep, xs - reach * slope_x, 2 * near_x - xs)
     mirror_y = np.where(steep, ys - reach * slope_y, 2 * near_y - ys)
 
-    # where the mirror lands: the four pixels it samples bilinearly, then the nearest one;
-    # each must be a background pixel
+    # where the mirror lands: the four pixels it samples bilinearly, then the nearest one,
+    # then the mirror through the nearest clean pixel; each must be a background pixel
     left, top = np.floor(mirror_x).astype(np.int32), np.floor(mirror_y).astype(np.int32)
+    through_y, through_x = (2 * near_y - ys).astype(np.int32), (2 * near_x - xs).astype(np.int32)
     land_rows = np.stack([top, top, top + 1, top + 1,
-                          np.round(mirror_y).astype(np.int32)])
+                          np.round(mirror_y).astype(np.int32), through_y])
     land_cols = np.stack([left, left + 1, left, left + 1,
-                          np.round(mirror_x).astype(np.int32)])
+                          np.round(mirror_x).astype(np.int32), through_x])
     height, width = clean.shape
     inside = (land_rows >= 0) & (land_rows < height) & (land_cols >= 0) & (land_cols < width)
     flat = (np.clip(land_rows, 0, height - 1).astype(np.int64) * width
@@ -234,16 +243,17 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
         depth.ravel()[flat] >= far_depth * (1.0 - MIRROR_DEPTH_MARGIN))
     bilinear = lands[:4].all(axis=0)
     nearest = ~bilinear & lands[4]
+    through = ~bilinear & ~nearest & lands[5]
     count = len(ys)
     rows = -(-count // _REMAP_CHUNK)
     map_x = np.zeros(rows * _REMAP_CHUNK, np.float32)
     map_y = np.zeros(rows * _REMAP_CHUNK, np.float32)
-    map_x[:count] = np.where(nearest, np.round(mirror_x), mirror_x)
-    map_y[:count] = np.where(nearest, np.round(mirror_y), mirror_y)
+    map_x[:count] = np.where(nearest, np.round(mirror_x), np.where(through, through_x, mirror_x))
+    map_y[:count] = np.where(nearest, np.round(mirror_y), np.where(through, through_y, mirror_y))
     sampled = cv2.remap(np.asarray(colour, np.float32), map_x.reshape(rows, _REMAP_CHUNK),
                         map_y.reshape(rows, _REMAP_CHUNK), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:count]
-    return np.where((bilinear | nearest)[:, None], sampled, fallback)
+    return np.where((bilinear | nearest | through)[:, None], sampled, fallback)
 
 
 def _window_around(mask: np.ndarray, margin: int) -> tuple[slice, slice]:

@@ -65,6 +65,11 @@ MAX_RENDER_SPACING_PX = 1.3
 neighbouring points and a large photo's tight crop stays crisp (rendered smaller and enlarged,
 the giraffe's fur went soft); beyond, each pixel copies its nearest point, in blocks."""
 
+MAX_SHRUNK_SCALE = 0.9
+"""A frame rendered smaller is at most this scale: enlarged by a ratio just above 1, linear
+interpolation drifts through every phase across the frame, in bands of sharp and half-pixel
+blurred columns some 100 px apart that the picture moves through."""
+
 MIN_RENDER_STEPS = 24
 """A frame is rendered smaller than the output (see render_view) only when its sides share a
 divisor of at least this many: steps of the scale finer than about 4 %."""
@@ -123,7 +128,7 @@ class PreparedScene:
     depth_backend: str
     disparity: np.ndarray  # relative, at the working size
     risk: Risk | None = None
-    cloud_scale: float = 1.0  # points per working pixel along each side
+    points_per_working_px: float = 1.0  # the cloud's density, along each side
 
 
 def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px: int) -> float:
@@ -243,7 +248,8 @@ def disparity_scale(prepared: PreparedScene) -> float:
 def point_spacing_px(prepared: PreparedScene, preset: Preset, t: float) -> float:
     """How far apart neighbouring points land in the output frame at time t (in the plane of
     the crops)."""
-    return preset.width_px / (crop_at(prepared.plan, t).width_px * prepared.cloud_scale)
+    return preset.width_px / (crop_at(prepared.plan, t).width_px
+                              * prepared.points_per_working_px)
 
 
 def render_view(view: View, spacing_px: float) -> View:
@@ -252,29 +258,37 @@ def render_view(view: View, spacing_px: float) -> View:
     Where points land well over a pixel apart, bilinear splats stop interpolating between
     them: each pixel copies its nearest point, in blocks (a tight crop of a small photo showed
     stair-stepped edges and blocky skin at 1080p). The frame is then rendered smaller, so that
-    points land MAX_RENDER_SPACING_PX apart, and enlarged with linear interpolation: the
-    scale changes continuously with the spacing, with no jump in sharpness within a clip. It
-    is a whole number of steps of the sides' common divisor, so both sides stay whole and
-    the enlargement is exact.
+    points land MAX_RENDER_SPACING_PX apart (at most at MAX_SHRUNK_SCALE: one step in
+    sharpness where a clip's spacing crosses the threshold), and enlarged with linear
+    interpolation. The scale is a whole number of steps of the sides' common divisor, so both
+    sides stay whole and the enlargement is exact; sides with a divisor under
+    MIN_RENDER_STEPS are rendered at the output size. The spacing is the crops' plane's (the
+    nearest surface's): farther surfaces, magnified less, are rendered a little smaller than
+    they need.
     """
     steps = math.gcd(view.width_px, view.height_px)
     count = math.floor(steps * MAX_RENDER_SPACING_PX / spacing_px)
-    if count >= steps or steps < MIN_RENDER_STEPS or count < 1:
+    if count >= steps or steps < MIN_RENDER_STEPS:
         return view
+    count = max(1, min(count, math.floor(steps * MAX_SHRUNK_SCALE)))
     scale = count / steps
     return View(view.position, view.focal_px * scale, view.principal_x_px * scale,
                 view.principal_y_px * scale, view.width_px // steps * count,
                 view.height_px // steps * count)
 
 
+def rendered_view(prepared: PreparedScene, preset: Preset, t: float) -> View:
+    """The view the frame at time t is rendered in (see render_view)."""
+    return render_view(frame_view(prepared, preset, t), point_spacing_px(prepared, preset, t))
+
+
 def frame_at(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
     """One output frame at time t in [0, 1], every pixel filled."""
-    view = frame_view(prepared, preset, t)
-    rendered = render_view(view, point_spacing_px(prepared, preset, t))
+    rendered = rendered_view(prepared, preset, t)
     frame = render_frame(prepared.cloud, rendered, disparity_scale(prepared))
-    if rendered is view:
+    if rendered.width_px == preset.width_px:
         return frame
-    return cv2.resize(frame, (view.width_px, view.height_px), interpolation=cv2.INTER_LINEAR)
+    return cv2.resize(frame, (preset.width_px, preset.height_px), interpolation=cv2.INTER_LINEAR)
 
 
 def frame_times(preset: Preset) -> list[float]:
@@ -314,8 +328,7 @@ def render_clip_frames(
             from kbbatch.device import torch_device
             from kbbatch.render_torch import render_batches
 
-            views = [render_view(frame_view(prepared, preset, t),
-                                 point_spacing_px(prepared, preset, t)) for t in times]
+            views = [rendered_view(prepared, preset, t) for t in times]
             batches = render_batches(prepared.cloud, views, disparity_scale(prepared),
                                      torch_device(device), (preset.width_px, preset.height_px))
             rendered = (frame for batch in prefetched(batches, GPU_BATCHES_AHEAD)

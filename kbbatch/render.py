@@ -190,15 +190,20 @@ _buffers = threading.local()
 
 
 def _scratch(height: int, width: int) -> tuple[SplatBuffers, int]:
-    """Per-thread accumulation buffers, reused across frames (no page faults per frame), and
-    the number of this frame in them."""
-    key = (height, width)
-    if getattr(_buffers, "key", None) != key:
-        _buffers.key = key
-        _buffers.splats = SplatBuffers.empty(height, width)
-        _buffers.frame = 0
+    """Per-thread accumulation buffers, reused across frames (no page faults per frame, also
+    when frames of a clip are rendered at several sizes: views of the first pixels of buffers
+    as large as the largest frame yet), and the number of this frame in them. The number only
+    grows, so no stamp left by an earlier frame, of any size, matches it."""
+    if getattr(_buffers, "capacity", 0) < height * width:
+        _buffers.capacity = height * width
+        _buffers.flat = SplatBuffers.empty(1, height * width)
+        _buffers.frame = getattr(_buffers, "frame", 0)
     _buffers.frame = _buffers.frame % 2_000_000_000 + 1
-    return _buffers.splats, _buffers.frame
+    pixels = height * width
+    splats = SplatBuffers(*(
+        array.reshape(-1, *array.shape[2:])[:pixels].reshape(height, width, *array.shape[2:])
+        for array in _buffers.flat.arrays()))
+    return splats, _buffers.frame
 
 
 def _splat_view(cloud: PointCloud, view: View, disparity_scale: float,
@@ -223,7 +228,9 @@ def render(cloud: PointCloud, view: View, disparity_scale: float) -> Rendering:
     disparity_scale converts inverse depth into working disparity pixels (f * baseline), so
     the tolerances mean the same at every output size. A pixel counts as covered (weight > 0)
     when its front surface is opaque or has a surface behind it; a soft edge over nothing is
-    a hole still to fill.
+    a hole still to fill where its alpha is under one half. (render_frame, finishing a frame,
+    composites every soft edge over nothing over its fill, except one blended into an opaque
+    surface at its own depth.)
     """
     buffers = SplatBuffers.empty(view.height_px, view.width_px)
     _splat_view(cloud, view, disparity_scale, buffers, 1)
@@ -587,7 +594,7 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
     full alpha there is the splat's blur, not background."""
     height, width = front.shape
     pixel = np.empty(3, np.float32)
-    veiled = 0
+    over_nothing = 0
     for index in touched:  # soft pixels: their composite, premultiplied by the weight
         yy = index // width
         xx = index % width
@@ -602,7 +609,7 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
                 back_cell[yy, xx, _WEIGHT] = alpha
                 clear[yy, xx] = -1.0
                 front[yy, xx] = 0.0
-                veiled += 1
+                over_nothing += 1
                 continue
             _composite(cell, stamp, clear, back, back_cell, frame, yy, xx, pixel)
             for c in range(3):
@@ -615,7 +622,7 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
             if front[yy, xx] > 0:
                 scale = np.float32(1.0) / here[_WEIGHT]
                 for c in range(3):
-                    image[yy, xx, c] = min(255, int(here[c] * scale + np.float32(0.5)))
+                    image[yy, xx, c] = min(255, max(0, int(here[c] * scale + np.float32(0.5))))
             else:
                 empty += 1
             for c in range(4):
@@ -631,7 +638,7 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
                                                 found)
             for c in range(3):
                 image[yy, xx, c] = image[best_y, best_x, c] if best_y >= 0 else 0
-    if veiled == 0:
+    if over_nothing == 0:
         return
     for index in touched:
         yy = index // width
@@ -647,7 +654,7 @@ def _finish_kernel(cell, front, stamp, clear, back, back_cell, frame, touched, i
             else:
                 behind = np.float32(image[best_y, best_x, c]) if best_y >= 0 else np.float32(0)
             value = back_cell[yy, xx, c] + see_through * behind
-            image[yy, xx, c] = min(255, int(value + np.float32(0.5)))
+            image[yy, xx, c] = min(255, max(0, int(value + np.float32(0.5))))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

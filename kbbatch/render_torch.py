@@ -275,12 +275,12 @@ class TorchRenderer:
         # A soft edge over nothing is filled as a hole, from the surfaces behind the soft
         # pixels around it, and composited over that fill (one blended into an opaque
         # surface at its depth keeps its own colour).
-        veiled = (soft_pixel & (back <= 0) & ~on_opaque & (front > 0)
+        over_nothing = (soft_pixel & (back <= 0) & ~on_opaque & (front > 0)
                   & (front_alpha < OPAQUE_ALPHA))
-        front = torch.where(veiled, 0.0, front)
+        front = torch.where(over_nothing, 0.0, front)
         shape = (len(views), height, width)
         image = _fill_from_background(image.view(*shape, 3), front.view(shape))
-        if not bool(veiled.any()):
+        if not bool(over_nothing.any()):
             return image
         behind_soft = soft_pixel & (back > 0)
         behind = torch.where(behind_soft[:, None],
@@ -292,7 +292,7 @@ class TorchRenderer:
         premultiplied = cell[:, :3] / total.clamp(min=MIN_SPLAT_WEIGHT)[:, None]
         veil = premultiplied + (1 - front_alpha)[:, None] * behind
         veil = (veil + 0.5).floor().clamp(0, 255).to(torch.uint8)
-        return torch.where(veiled[:, None], veil, image.view(-1, 3)).view(*shape, 3)
+        return torch.where(over_nothing[:, None], veil, image.view(-1, 3)).view(*shape, 3)
 
 
 def _cracks(solid: torch.Tensor, crack_z: float) -> torch.Tensor:

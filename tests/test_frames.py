@@ -25,6 +25,9 @@ def test_a_frame_is_rendered_smaller_by_the_point_spacing_in_whole_steps():
     assert small.height_px / 1080 == scale
     assert (small.focal_px, small.principal_x_px, small.principal_y_px) == (
         1000.0 * scale, 960.0 * scale, 540.0 * scale)
+    # just past the threshold, one step down: enlarged by a ratio just above 1, linear
+    # interpolation would band the frame in sharp and blurred columns
+    assert render_view(view, 1.35).width_px == 1728  # 0.9 of the output
     odd = View((0.0, 0.0, 0.0), 1000.0, 500.5, 300.5, 1001, 601)  # no common divisor
     assert render_view(odd, 1.8) is odd
 

@@ -284,3 +284,24 @@ def test_a_soft_edge_blended_into_its_objects_opaque_inside_keeps_the_objects_co
                & (render(rim, view, DISPARITY_SCALE).weight > 0))
     assert blended.sum() >= 20, "the rim must share pixels with the card's inside"
     assert (frame[blended] == (255, 0, 0)).all(), "the object's rim took background colour"
+
+
+def test_frames_of_several_sizes_in_one_thread_equal_frames_rendered_alone():
+    """A clip's frames may be rendered at several sizes (kbbatch.pipeline.render_view); the
+    per-thread buffers are reused across them and must carry nothing from one frame into the
+    next."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cloud, _, _, view = soft_rim_on_a_card()
+    veil, _ = faint_veil_over_a_wall_with_gaps()
+    small = View(view.position, view.focal_px * 0.75, view.principal_x_px * 0.75,
+                 view.principal_y_px * 0.75, 120, 90)
+    jobs = [(cloud, view), (veil, small), (cloud, small), (veil, view), (cloud, view)]
+
+    def alone(job):
+        with ThreadPoolExecutor(max_workers=1) as fresh:  # a thread of its own: new buffers
+            return fresh.submit(render_frame, job[0], job[1], DISPARITY_SCALE).result()
+
+    in_turn = [render_frame(scene, seen, DISPARITY_SCALE) for scene, seen in jobs]
+    for job, frame in zip(jobs, in_turn, strict=True):
+        np.testing.assert_array_equal(frame, alone(job))
