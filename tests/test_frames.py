@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 
 from kbbatch.camera import Crop, Plan, View, crop_at, working_size
+from kbbatch.depth import DepthOptions
 from kbbatch.pipeline import (
     MAX_RENDER_SPACING_PX,
     ClipOptions,
@@ -61,3 +62,35 @@ def test_a_tight_crop_of_a_small_photo_has_no_stair_steps_at_1080p():
     assert edge.sum() > 5000
     assert error[~edge].max() < 1, "the flat sides changed"
     assert error[edge].mean() < 2, f"stair steps: {error[edge].mean():.2f} levels off"
+
+
+def test_a_straight_upright_line_across_the_horizon_bends_without_a_corner():
+    """Without a depth network the background is a ground plane below the horizon and a
+    backdrop above it. Where the two met at one row, a window frame crossing the horizon
+    (photo 20), or a launch tower (24), broke into two straight pieces at an angle as the
+    camera moved sideways; the ground still shears it, but into a gentle curve."""
+    height, width = 360, 640
+    photo = np.full((height, width, 3), 90, np.uint8)
+    photo[:, 398:402] = 220
+    preset = with_overrides(load_preset("slideshow"), width_px=640, height_px=360)
+    work_w, work_h = working_size(width, height)
+    plan = Plan(Crop(work_w / 2, work_h / 2, work_w, work_h),
+                Crop(work_w * 0.6, work_h / 2, work_w / 1.4, work_h / 1.4),
+                planner="manifest", parallax=True)
+    options = ClipOptions(threads=1, cache_depth=False, depth=DepthOptions(backend="ramp"))
+    prepared = prepare_scene(photo, None, preset, options, {}, plan=plan)
+    bright = np.clip(frame_at(prepared, preset, 1.0).astype(np.float32).mean(axis=-1) - 90,
+                     0, None)
+    line_x = (bright * np.arange(width)).sum(axis=1) / bright.sum(axis=1)
+    rows = np.arange(height)
+
+    def angle_deg(start: int, stop: int) -> float:
+        return float(np.degrees(np.arctan(np.polyfit(rows[start:stop], line_x[start:stop],
+                                                     1)[0])))
+
+    total = abs(angle_deg(0, 60) - angle_deg(height - 60, height))
+    window = 18
+    sharpest = max(abs(angle_deg(row, row + window) - angle_deg(row - window, row))
+                   for row in range(window, height - window))
+    assert total > 8.0  # the ground does shear the line: there is parallax
+    assert sharpest < 0.25 * total  # 17 degrees turned within 18 rows with the corner

@@ -18,13 +18,25 @@ HORIZON_FRACTION = 0.45
 BACKDROP_DISPARITY = 0.15
 """Disparity of everything above the horizon, relative to the nearest ground."""
 
+HINGE_HALF_WIDTH = 0.15
+"""Half the height (fraction of the image) over which the backdrop bends into the ground.
+
+Where the two planes met at one row, every straight upright thing crossing the horizon that
+is not a card (a pole, a window frame, a tower) broke there into two straight pieces at an
+angle as the camera moved. Rounded over this band, its bend is a gentle curve."""
+
 
 def ground_plane_disparity(height_px: int, width_px: int, horizon_fraction: float = HORIZON_FRACTION
                            ) -> np.ndarray:
     """Disparity of a flat ground below the horizon (linear in the row) and a far backdrop."""
-    rows = (np.arange(height_px, dtype=np.float32) + 0.5) / height_px
-    below = np.clip((rows - horizon_fraction) / (1.0 - horizon_fraction), 0.0, 1.0)
-    column = BACKDROP_DISPARITY + (1.0 - BACKDROP_DISPARITY) * below
+    rows = (np.arange(height_px, dtype=np.float64) + 0.5) / height_px
+    below = rows - horizon_fraction
+    half = min(HINGE_HALF_WIDTH, horizon_fraction, 1.0 - horizon_fraction)
+    # a parabola over the band, meeting both planes with their slopes (no corner)
+    rounded = np.where(below > -half, (below + half) ** 2 / (4.0 * half), 0.0)
+    ground = np.where(below >= half, below, rounded) / (1.0 - horizon_fraction)
+    column = (BACKDROP_DISPARITY + (1.0 - BACKDROP_DISPARITY) * np.minimum(ground, 1.0)
+              ).astype(np.float32)
     return np.repeat(column[:, None], width_px, axis=1)
 
 
