@@ -31,7 +31,7 @@ def ground_plane_disparity(height_px: int, width_px: int, horizon_fraction: floa
     """Disparity of a flat ground below the horizon (linear in the row) and a far backdrop."""
     rows = (np.arange(height_px, dtype=np.float64) + 0.5) / height_px
     below = rows - horizon_fraction
-    half = min(HINGE_HALF_WIDTH, horizon_fraction, 1.0 - horizon_fraction)
+    half = max(min(HINGE_HALF_WIDTH, horizon_fraction, 1.0 - horizon_fraction), 1e-6)
     # a parabola over the band, meeting both planes with their slopes (no corner)
     rounded = np.where(below > -half, (below + half) ** 2 / (4.0 * half), 0.0)
     ground = np.where(below >= half, below, rounded) / (1.0 - horizon_fraction)
