@@ -252,7 +252,13 @@ def point_spacing_px(prepared: PreparedScene, preset: Preset, t: float) -> float
                               * prepared.points_per_working_px)
 
 
-def render_view(view: View, spacing_px: float) -> View:
+def clip_spacing_px(prepared: PreparedScene, preset: Preset) -> float:
+    """How far apart points land at the clip's tightest crop (the start's or the end's: a
+    crop's size moves monotonically between them)."""
+    return max(point_spacing_px(prepared, preset, 0.0), point_spacing_px(prepared, preset, 1.0))
+
+
+def render_view(view: View, spacing_px: float, clip_spacing_px: float | None = None) -> View:
     """The view a frame is rendered in before it is enlarged to the output view.
 
     Where points land well over a pixel apart, bilinear splats stop interpolating between
@@ -265,12 +271,18 @@ def render_view(view: View, spacing_px: float) -> View:
     MIN_RENDER_STEPS are rendered at the output size. The spacing is the crops' plane's (the
     nearest surface's): farther surfaces, magnified less, are rendered a little smaller than
     they need.
+
+    clip_spacing_px, the clip's widest spacing (clip_spacing_px()): a clip is rendered smaller
+    in all its frames or in none. Decided frame by frame, the frame where the spacing crossed
+    the threshold went from sharp to soft at once: the variance of the Laplacian fell from
+    373 to 142 between two frames of a 1700 px photo's clip.
     """
+    widest = spacing_px if clip_spacing_px is None else max(spacing_px, clip_spacing_px)
     steps = math.gcd(view.width_px, view.height_px)
-    count = math.floor(steps * MAX_RENDER_SPACING_PX / spacing_px)
-    if count >= steps or steps < MIN_RENDER_STEPS:
+    if widest <= MAX_RENDER_SPACING_PX or steps < MIN_RENDER_STEPS:
         return view
-    count = max(1, min(count, math.floor(steps * MAX_SHRUNK_SCALE)))
+    count = max(1, min(math.floor(steps * MAX_RENDER_SPACING_PX / spacing_px),
+                       math.floor(steps * MAX_SHRUNK_SCALE)))
     scale = count / steps
     return View(view.position, view.focal_px * scale, view.principal_x_px * scale,
                 view.principal_y_px * scale, view.width_px // steps * count,
@@ -279,7 +291,8 @@ def render_view(view: View, spacing_px: float) -> View:
 
 def rendered_view(prepared: PreparedScene, preset: Preset, t: float) -> View:
     """The view the frame at time t is rendered in (see render_view)."""
-    return render_view(frame_view(prepared, preset, t), point_spacing_px(prepared, preset, t))
+    return render_view(frame_view(prepared, preset, t), point_spacing_px(prepared, preset, t),
+                       clip_spacing_px(prepared, preset))
 
 
 def frame_at(prepared: PreparedScene, preset: Preset, t: float) -> np.ndarray:
