@@ -260,31 +260,31 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     return np.where((bilinear | nearest | through)[:, None], sampled, fallback)
 
 
-def background_depth(depth: np.ndarray, clean: np.ndarray, band: np.ndarray,
+def background_depth(depth: np.ndarray, clean: np.ndarray, where: np.ndarray,
                      farthest: np.ndarray) -> np.ndarray:
-    """The depth of the background layer: at each band pixel, the background's surface
-    continued from its nearest clean pixel, along that surface's slope there (farthest, the
-    farthest depth nearby, where there is no clean pixel).
+    """The depth of the background layer: at each pixel of where, the background's surface
+    continued from its nearest clean pixel, along that surface's slope there (elsewhere
+    farthest, the farthest depth nearby).
 
-    The farthest depth nearby put the background behind an object up to a band's width
-    farther than the ground beside it: on the sloping ground of the pop-up geometry 4 %
-    farther, and as the camera moved the two parted along the object's old outline, which
-    stayed on the ground as a thin line. The nearest clean pixel's depth alone, on a slope,
-    broke the surface behind into flat facets."""
+    The farthest depth nearby put the background behind an object as far as the ground a
+    band's width away: on the sloping ground of the pop-up geometry 4 % farther than the
+    ground beside it (photo 03), so that the two moved apart along the object's old outline
+    as the camera moved. The nearest clean pixel's depth alone, on a slope, broke the surface
+    behind into flat facets."""
     far_depth = farthest.copy()
     if not clean.any():
         return far_depth
-    rows, cols = nearest_pixels(clean, band)
+    rows, cols = nearest_pixels(clean, where)
     disparity = 1.0 / depth
     slope_x = cv2.Sobel(disparity, cv2.CV_32F, 1, 0, ksize=3)[rows, cols] / _SOBEL_GAIN
     slope_y = cv2.Sobel(disparity, cv2.CV_32F, 0, 1, ksize=3)[rows, cols] / _SOBEL_GAIN
-    band_rows, band_cols = np.nonzero(band)
+    where_rows, where_cols = np.nonzero(where)
     start = disparity[rows, cols]
-    continued = start + slope_x * (band_cols - cols) + slope_y * (band_rows - rows)
+    continued = start + slope_x * (where_cols - cols) + slope_y * (where_rows - rows)
     # a surface continued only so far: never far off the depth it starts from
     continued = np.clip(continued, start * (1.0 - BACKGROUND_SLOPE_REACH),
                         start * (1.0 + BACKGROUND_SLOPE_REACH))
-    far_depth[band] = 1.0 / continued
+    far_depth[where] = 1.0 / continued
     return far_depth
 
 
@@ -430,9 +430,8 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # background beyond the band, not the flat mean, or the move uncovers a smooth strip.
     smooth = upsample_depth(depth, width, height)
     clean_back = cv2.resize(back_source, size, interpolation=cv2.INTER_NEAREST) > 0.5
-    farthest_near = cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST)
-    far_depth = background_depth(smooth, clean_back, band, farthest_near)
-    back_behind = mirrored_texture(colour, clean_back, band, smooth, farthest_near[band])
+    farthest_nearby = cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST)
+    back_behind = mirrored_texture(colour, clean_back, band, smooth, farthest_nearby[band])
     # ... less what lies further along the line to the object's colour than the texture's
     # own spread: a trace of the object (the blurred tail of a wire) in the clean background
     # would be copied behind it as a ghost. The same is taken off the other way, or the
@@ -486,6 +485,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     found = np.zeros((height, width), bool)
     found[win] = has_background
     has_background = found | (alpha <= 0.0)
+    far_depth = background_depth(smooth, clean_back, band & has_background, farthest_nearby)
 
     return SoftLayers(
         depth=smooth,
