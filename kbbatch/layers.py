@@ -83,6 +83,12 @@ BACKGROUND_SLOPE_REACH = 0.1
 """The background continued behind an object along its slope departs at most this fraction
 from the disparity of the clean pixel it continues (a steep slope is no plane to extend)."""
 
+MIXED_EDGE_PX = 1.0
+"""Up to this far beyond the depth edge (working px) a pixel is read as a mix of object and
+background, none of it the background's texture; the texture's share then grows over one
+pixel. Behind a shoulder against chandelier lights (photo 03) the lights' spread took every
+mixed pixel for texture: their dark half stayed behind as a line tracing the old outline."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -406,7 +412,9 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # object's, or the object carries a faint skirt of background texture as its soft edge.
     texture_share = BACKGROUND_SPREAD * spread_here / np.sqrt(np.maximum(spread, 1e-6))
     beyond_edge = outside_px[band] > 0
-    along = np.where(beyond_edge, (along - texture_share) / np.maximum(1 - texture_share, 0.1),
+    # ... except right at the edge, where a pixel is the two sides' mix
+    share_here = texture_share * np.clip(outside_px[band] - MIXED_EDGE_PX, 0.0, 1.0)
+    along = np.where(beyond_edge, (along - share_here) / np.maximum(1 - share_here, 0.1),
                      along)
     matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[here]
     matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
@@ -453,7 +461,11 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # the other way, which would hand the object's colour to the background. What the object
     # cannot take (out of its gamut) is dropped: the start view then differs from the photo
     # there, which is less visible than a ghost.
-    back_clean = np.clip(back_here, 0, 255)
+    # What the background is expected to be here: the texture continued from beside the
+    # object, not the clean mean of a box around it. Held near the edge to that mean (of
+    # whatever lay in the box), the field beside the sign's post (photo 33) showed a pale,
+    # flat strip where the post had stood.
+    back_clean = np.clip(back_behind, 0, 255)
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
     tolerance = EDGE_SLACK + (texture[:, None] - EDGE_SLACK) * from_edge
