@@ -85,9 +85,10 @@ from the disparity of the clean pixel it continues (a steep slope is no plane to
 
 MIXED_EDGE_PX = 1.0
 """Up to this far beyond the depth edge (working px) a pixel is read as a mix of object and
-background, none of it the background's texture; the texture's share then grows over one
-pixel. Behind a shoulder against chandelier lights (photo 03) the lights' spread took every
-mixed pixel for texture: their dark half stayed behind as a line tracing the old outline."""
+background, none of it the background's texture; the texture's share then grows to the full
+over MIXED_EDGE_PX more. Behind a shoulder against chandelier lights (photo 03) the lights'
+spread took every mixed pixel for texture: their dark half stayed behind as a line tracing
+the old outline."""
 
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
@@ -413,7 +414,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     texture_share = BACKGROUND_SPREAD * spread_here / np.sqrt(np.maximum(spread, 1e-6))
     beyond_edge = outside_px[band] > 0
     # ... except right at the edge, where a pixel is the two sides' mix
-    share_here = texture_share * np.clip(outside_px[band] - MIXED_EDGE_PX, 0.0, 1.0)
+    share_here = texture_share * np.clip(outside_px[band] / MIXED_EDGE_PX - 1.0, 0.0, 1.0)
     along = np.where(beyond_edge, (along - share_here) / np.maximum(1 - share_here, 0.1),
                      along)
     matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[here]
@@ -455,16 +456,16 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     first = np.round(np.clip(np.where(mostly_front, back_behind, front_here), 0, 255))
     share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
     second = _remainder(pixel, first, share)
-    # Where the background (as the remainder) strays from its clean estimate further than the
-    # background's own texture does, or out of gamut, the object takes up the difference: it
-    # is the object's (a rim light, a lighter edge) and must not stay behind as a ghost. Never
-    # the other way, which would hand the object's colour to the background. What the object
-    # cannot take (out of its gamut) is dropped: the start view then differs from the photo
-    # there, which is less visible than a ghost.
     # What the background is expected to be here: the texture continued from beside the
     # object, not the clean mean of a box around it. Held near the edge to that mean (of
     # whatever lay in the box), the field beside the sign's post (photo 33) showed a pale,
     # flat strip where the post had stood.
+    # Where the background (as the remainder) strays from what it is expected to be further
+    # than the background's own texture does, or out of gamut, the object takes up the
+    # difference: it is the object's (a rim light, a lighter edge) and must not stay behind
+    # as a ghost. Never the other way, which would hand the object's colour to the
+    # background. What the object cannot take (out of its gamut) is dropped: the start view
+    # then differs from the photo there, which is less visible than a ghost.
     back_clean = np.clip(back_behind, 0, 255)
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2

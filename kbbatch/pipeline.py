@@ -258,26 +258,26 @@ def clip_spacing_px(prepared: PreparedScene, preset: Preset) -> float:
     return max(point_spacing_px(prepared, preset, 0.0), point_spacing_px(prepared, preset, 1.0))
 
 
-def render_view(view: View, spacing_px: float, clip_spacing_px: float | None = None) -> View:
+def render_view(view: View, spacing_px: float, clip_spacing: float | None = None) -> View:
     """The view a frame is rendered in before it is enlarged to the output view.
 
     Where points land well over a pixel apart, bilinear splats stop interpolating between
     them: each pixel copies its nearest point, in blocks (a tight crop of a small photo showed
     stair-stepped edges and blocky skin at 1080p). The frame is then rendered smaller, so that
-    points land MAX_RENDER_SPACING_PX apart (at most at MAX_SHRUNK_SCALE: one step in
-    sharpness where a clip's spacing crosses the threshold), and enlarged with linear
+    points land MAX_RENDER_SPACING_PX apart (or closer: the scale is at most
+    MAX_SHRUNK_SCALE), and enlarged with linear
     interpolation. The scale is a whole number of steps of the sides' common divisor, so both
     sides stay whole and the enlargement is exact; sides with a divisor under
     MIN_RENDER_STEPS are rendered at the output size. The spacing is the crops' plane's (the
     nearest surface's): farther surfaces, magnified less, are rendered a little smaller than
     they need.
 
-    clip_spacing_px, the clip's widest spacing (clip_spacing_px()): a clip is rendered smaller
+    clip_spacing, the clip's widest spacing (clip_spacing_px()): a clip is rendered smaller
     in all its frames or in none. Decided frame by frame, the frame where the spacing crossed
     the threshold went from sharp to soft at once: the variance of the Laplacian fell from
     373 to 142 between two frames of a 1700 px photo's clip.
     """
-    widest = spacing_px if clip_spacing_px is None else max(spacing_px, clip_spacing_px)
+    widest = spacing_px if clip_spacing is None else max(spacing_px, clip_spacing)
     steps = math.gcd(view.width_px, view.height_px)
     if widest <= MAX_RENDER_SPACING_PX or steps < MIN_RENDER_STEPS:
         return view

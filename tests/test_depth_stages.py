@@ -210,3 +210,13 @@ def test_a_frame_or_a_lattice_is_no_upright_card():
     assert stands_up(solid.astype(bool))
     assert not stands_up(frame.astype(bool))
     assert not stands_up(lattice.astype(bool))
+
+
+def test_the_ground_plane_has_no_corner_and_stays_finite_at_any_horizon():
+    for horizon in (0.0, 0.3, 0.45, 1.0):
+        column = ground_plane_disparity(400, 2, horizon)[:, 0].astype(np.float64)
+        assert np.isfinite(column).all() and column.min() > 0, horizon
+        assert np.all(np.diff(column) >= 0), horizon  # never nearer above than below
+    column = ground_plane_disparity(400, 1, 0.45)[:, 0].astype(np.float64)
+    # no corner: the slope changes little from row to row (by 0.004 at the old corner)
+    assert np.abs(np.diff(column, 2)).max() < 1e-4

@@ -25,16 +25,19 @@ Where the two planes met at one row, every straight upright thing crossing the h
 is not a card (a pole, a window frame, a tower) broke there into two straight pieces at an
 angle as the camera moved. Rounded over this band, its bend is a gentle curve."""
 
+_THINNEST_BAND = 1e-6  # a horizon at the image's very edge still gets a band (no 0 / 0)
+
 
 def ground_plane_disparity(height_px: int, width_px: int, horizon_fraction: float = HORIZON_FRACTION
                            ) -> np.ndarray:
-    """Disparity of a flat ground below the horizon (linear in the row) and a far backdrop."""
+    """Disparity of a flat ground below the horizon (linear in the row, but for the rounded
+    band around the horizon) and a far backdrop."""
     rows = (np.arange(height_px, dtype=np.float64) + 0.5) / height_px
     below = rows - horizon_fraction
-    half = max(min(HINGE_HALF_WIDTH, horizon_fraction, 1.0 - horizon_fraction), 1e-6)
+    half = max(min(HINGE_HALF_WIDTH, horizon_fraction, 1.0 - horizon_fraction), _THINNEST_BAND)
     # a parabola over the band, meeting both planes with their slopes (no corner)
     rounded = np.where(below > -half, (below + half) ** 2 / (4.0 * half), 0.0)
-    ground = np.where(below >= half, below, rounded) / (1.0 - horizon_fraction)
+    ground = np.where(below >= half, below, rounded) / max(1.0 - horizon_fraction, half)
     column = (BACKDROP_DISPARITY + (1.0 - BACKDROP_DISPARITY) * np.minimum(ground, 1.0)
               ).astype(np.float32)
     return np.repeat(column[:, None], width_px, axis=1)
