@@ -8,6 +8,7 @@ from kbbatch.depth import DepthOptions
 from kbbatch.pipeline import (
     MAX_RENDER_SPACING_PX,
     ClipOptions,
+    PreparedScene,
     frame_at,
     frame_times,
     point_spacing_px,
@@ -15,7 +16,19 @@ from kbbatch.pipeline import (
     render_view,
     rendered_view,
 )
-from kbbatch.presets import load_preset, with_overrides
+from kbbatch.presets import Preset, load_preset, with_overrides
+
+
+def centred_zoom(photo: np.ndarray, zoom: float) -> tuple[Preset, Plan, PreparedScene]:
+    """A 1080p clip of the photo zooming into its centre, without parallax."""
+    preset = with_overrides(load_preset("slideshow"), width_px=1920, height_px=1080)
+    work_w, work_h = working_size(photo.shape[1], photo.shape[0])
+    plan = Plan(Crop(work_w / 2, work_h / 2, work_w, work_h),
+                Crop(work_w / 2, work_h / 2, work_w / zoom, work_h / zoom),
+                planner="manifest", parallax=False)
+    prepared = prepare_scene(photo, None, preset, ClipOptions(threads=1, cache_depth=False),
+                             {}, plan=plan)
+    return preset, plan, prepared
 
 
 def test_a_frame_is_rendered_smaller_by_the_point_spacing_in_whole_steps():
@@ -45,15 +58,9 @@ def test_a_tight_crop_of_a_small_photo_has_no_stair_steps_at_1080p():
     rows, cols = np.mgrid[0:height, 0:width]
     photo = np.where(((cols - 0.6 * rows) > 60)[..., None], 230, 30).astype(np.uint8)
     photo = np.repeat(photo, 3, axis=2)
-    preset = with_overrides(load_preset("slideshow"), width_px=1920, height_px=1080)
-    work_w, work_h = working_size(width, height)
-    plan = Plan(Crop(work_w / 2, work_h / 2, work_w, work_h),
-                Crop(work_w / 2, work_h / 2, work_w / 1.5, work_h / 1.5),
-                planner="manifest", parallax=False)
-    prepared = prepare_scene(photo, None, preset, ClipOptions(threads=1, cache_depth=False),
-                             {}, plan=plan)
+    preset, plan, prepared = centred_zoom(photo, 1.5)
     frame = frame_at(prepared, preset, 1.0).astype(np.float32)
-    crop, to_photo = crop_at(plan, 1.0), width / work_w
+    crop, to_photo = crop_at(plan, 1.0), width / working_size(width, height)[0]
     step_x, step_y = crop.width_px * to_photo / 1920, crop.height_px * to_photo / 1080
     matrix = np.array([[step_x, 0, crop.left_px * to_photo + 0.5 * step_x - 0.5],
                        [0, step_y, crop.top_px * to_photo + 0.5 * step_y - 0.5]], np.float32)
@@ -108,13 +115,7 @@ def test_a_clip_whose_spacing_crosses_the_threshold_does_not_go_soft_at_one_fram
     rng = np.random.default_rng(7)
     photo = cv2.GaussianBlur(rng.integers(0, 256, (height, width, 3)).astype(np.uint8),
                              (0, 0), 0.8)
-    preset = with_overrides(load_preset("slideshow"), width_px=1920, height_px=1080)
-    work_w, work_h = working_size(width, height)
-    plan = Plan(Crop(work_w / 2, work_h / 2, work_w, work_h),
-                Crop(work_w / 2, work_h / 2, work_w / 1.25, work_h / 1.25),
-                planner="manifest", parallax=False)
-    prepared = prepare_scene(photo, None, preset, ClipOptions(threads=1, cache_depth=False),
-                             {}, plan=plan)
+    preset, _, prepared = centred_zoom(photo, 1.25)
     times = frame_times(preset)
     spacings = [point_spacing_px(prepared, preset, t) for t in times]
     assert spacings[0] < MAX_RENDER_SPACING_PX < spacings[-1]
