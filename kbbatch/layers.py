@@ -456,17 +456,16 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     first = np.round(np.clip(np.where(mostly_front, back_behind, front_here), 0, 255))
     share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
     second = _remainder(pixel, first, share)
-    # What the background is expected to be here: the texture continued from beside the
-    # object, not the clean mean of a box around it. Held near the edge to that mean (of
-    # whatever lay in the box), the field beside the sign's post (photo 33) showed a pale,
-    # flat strip where the post had stood.
-    # Where the background (as the remainder) strays from what it is expected to be further
-    # than the background's own texture does, or out of gamut, the object takes up the
+    # Where the background (as the remainder) strays from its clean estimate further than
+    # the background's own texture does, or out of gamut, the object takes up the
     # difference: it is the object's (a rim light, a lighter edge) and must not stay behind
     # as a ghost. Never the other way, which would hand the object's colour to the
     # background. What the object cannot take (out of its gamut) is dropped: the start view
-    # then differs from the photo there, which is less visible than a ghost.
-    back_clean = np.clip(back_behind, 0, 255)
+    # then differs from the photo there, which is less visible than a ghost. (Held to the
+    # texture mirrored from beside the object instead of the clean mean, a pixel wholly the
+    # background's strayed wherever the mirror was not the photo, and the start frame lost
+    # structure at edges: a railing's bar beside a man on a ladder, photo 22.)
+    back_clean = np.clip(back_here, 0, 255)
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
     tolerance = EDGE_SLACK + (texture[:, None] - EDGE_SLACK) * from_edge
