@@ -212,7 +212,9 @@ lies on a ridge between two borders, and has no one normal to mirror along."""
 
 
 def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
-                     depth: np.ndarray, far_depth: np.ndarray) -> np.ndarray:
+                     depth: np.ndarray, far_depth: np.ndarray,
+                     nearest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                     ) -> np.ndarray:
     """For each pixel of where, the colour of the pixel mirrored across the border of the
     clean pixels, along the border's normal and sampled bilinearly (its nearest clean pixel
     where the mirror falls off): the clean texture continued across the region's border,
@@ -221,11 +223,12 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     The mirror may land on any pixel outside where whose depth (per image pixel) is at least
     the pixel's far_depth (per pixel of where), not only on clean ones: those may be a thin
     strip (between the band and the reach of the depth edge), and mirrors falling off it took
-    one pixel's colour across the band as a smooth streak."""
+    one pixel's colour across the band as a smooth streak. nearest: _nearest_with_distance
+    (clean, where), when the caller has it already."""
     ys, xs = np.nonzero(where)
     if not clean.any() or len(ys) == 0:
         return colour[ys, xs]
-    near_y, near_x, distance = _nearest_with_distance(clean, where)
+    near_y, near_x, distance = nearest or _nearest_with_distance(clean, where)
     fallback = colour[near_y, near_x].astype(np.float32)
     smooth = cv2.GaussianBlur(distance, (0, 0), MIRROR_NORMAL_SMOOTH_PX)
     slope_x = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)[ys, xs] / _SOBEL_GAIN
@@ -267,11 +270,11 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     return np.where((bilinear | nearest | through)[:, None], sampled, fallback)
 
 
-def background_depth(depth: np.ndarray, clean: np.ndarray, where: np.ndarray,
-                     farthest: np.ndarray) -> np.ndarray:
+def background_depth(depth: np.ndarray, where: np.ndarray, near_rows: np.ndarray,
+                     near_cols: np.ndarray, farthest: np.ndarray) -> np.ndarray:
     """The depth of the background layer: at each pixel of where, the background's surface
-    continued from its nearest clean pixel, along that surface's slope there (elsewhere
-    farthest, the farthest depth nearby).
+    continued from its nearest clean pixel (near_rows, near_cols, in np.nonzero order), along
+    that surface's slope there (elsewhere farthest, the farthest depth nearby).
 
     The farthest depth nearby put the background behind an object as far as the ground a
     band's width away: on the sloping ground of the pop-up geometry 4 % farther than the
@@ -279,15 +282,12 @@ def background_depth(depth: np.ndarray, clean: np.ndarray, where: np.ndarray,
     as the camera moved. The nearest clean pixel's depth alone, on a slope, broke the surface
     behind into flat facets."""
     far_depth = farthest.copy()
-    if not clean.any():
-        return far_depth
-    rows, cols = nearest_pixels(clean, where)
     disparity = 1.0 / depth
-    slope_x = cv2.Sobel(disparity, cv2.CV_32F, 1, 0, ksize=3)[rows, cols] / _SOBEL_GAIN
-    slope_y = cv2.Sobel(disparity, cv2.CV_32F, 0, 1, ksize=3)[rows, cols] / _SOBEL_GAIN
+    slope_x = cv2.Sobel(disparity, cv2.CV_32F, 1, 0, ksize=3)[near_rows, near_cols] / _SOBEL_GAIN
+    slope_y = cv2.Sobel(disparity, cv2.CV_32F, 0, 1, ksize=3)[near_rows, near_cols] / _SOBEL_GAIN
     where_rows, where_cols = np.nonzero(where)
-    start = disparity[rows, cols]
-    continued = start + slope_x * (where_cols - cols) + slope_y * (where_rows - rows)
+    start = disparity[near_rows, near_cols]
+    continued = start + slope_x * (where_cols - near_cols) + slope_y * (where_rows - near_rows)
     # a surface continued only so far: never far off the depth it starts from
     continued = np.clip(continued, start * (1.0 - BACKGROUND_SLOPE_REACH),
                         start * (1.0 + BACKGROUND_SLOPE_REACH))
@@ -440,7 +440,10 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     smooth = upsample_depth(depth, width, height)
     clean_back = cv2.resize(back_source, size, interpolation=cv2.INTER_NEAREST) > 0.5
     farthest_nearby = cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST)
-    back_behind = mirrored_texture(colour, clean_back, band, smooth, farthest_nearby[band])
+    # each band pixel's nearest clean background pixel, for the mirror and the depth behind
+    nearest_clean = _nearest_with_distance(clean_back, band) if clean_back.any() else None
+    back_behind = mirrored_texture(colour, clean_back, band, smooth, farthest_nearby[band],
+                                   nearest_clean)
     # ... less what lies further along the line to the object's colour than the texture's
     # own spread: a trace of the object (the blurred tail of a wire) in the clean background
     # would be copied behind it as a ghost. The same is taken off the other way, or the
@@ -497,7 +500,13 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     found = np.zeros((height, width), bool)
     found[win] = has_background
     has_background = found | (alpha <= 0.0)
-    far_depth = background_depth(smooth, clean_back, band & has_background, farthest_nearby)
+    if nearest_clean is None:
+        far_depth = farthest_nearby
+    else:
+        continued = has_background[band]
+        far_depth = background_depth(smooth, band & has_background,
+                                     nearest_clean[0][continued], nearest_clean[1][continued],
+                                     farthest_nearby)
 
     return SoftLayers(
         depth=smooth,
