@@ -276,7 +276,7 @@ class TorchRenderer:
         # pixels around it, and composited over that fill (one blended into an opaque
         # surface at its depth keeps its own colour).
         over_nothing = (soft_pixel & (back <= 0) & ~on_opaque & (front > 0)
-                  & (front_alpha < OPAQUE_ALPHA))
+                        & (front_alpha < OPAQUE_ALPHA))
         front = torch.where(over_nothing, 0.0, front)
         shape = (len(views), height, width)
         image = _fill_from_background(image.view(*shape, 3), front.view(shape))

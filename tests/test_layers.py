@@ -307,4 +307,4 @@ def test_the_background_behind_an_object_continues_the_sloping_ground_beside_it(
     far = layers.far
     assert far.sum() > 200
     error = np.abs(layers.far_depth[far] * ground[far] - 1.0)
-    assert error.max() < 0.01  # 5 % with the farthest depth nearby
+    assert error.max() < 0.01  # 9 % with the farthest depth nearby
