@@ -3,8 +3,11 @@
 Before the fill, the photo's point cloud is rendered (small) at the overshot end view. A clip
 looks broken when much of that view is invented (fill), when fill is enclosed by a nearer
 surface (a tear inside an object, not background beside it), or when small depth islands
-float in front of their surroundings (fragments). Over a budget, the relief of the depth is
-reduced, step by step down to none (the 2D move), rather than show the damage.
+float in front of their surroundings (fragments). The photo's long straight lines are followed
+to the end of the move too: a straight line in the world stays straight in every view and an
+upright one stays upright, so one that bends or tilts shows the depth is wrong along it (a pole
+or a tower laid on the ground plane of the no-network prior). Over a budget, the relief of the
+depth is reduced, step by step down to none (the 2D move), rather than show the damage.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from kbbatch.camera import (
     nearest_depth,
     output_view,
     overshoot,
+    project,
+    unproject,
     widest_crop,
     working_view,
 )
@@ -55,6 +60,36 @@ RELIEF_STEPS = (1.0, 0.5, 0.25, 0.0)
 ASSESS_WIDTH_PX = 480
 """The end view is judged at this width: its shares, not its detail, matter."""
 
+LINE_BEND_MAX = 0.01
+"""Budget: how far a straight line of the photo may bow at the end of the move, as a fraction
+of the frame's height (11 px at 1080p), from the chord between its ends."""
+
+LINE_TILT_MAX_DEG = 4.0
+"""Budget: how far an upright line (within LINE_UPRIGHT_DEG of vertical) may turn between the
+first frame and the last (the camera does not turn: a real upright stays upright)."""
+
+LINE_UPRIGHT_DEG = 20.0
+"""Lines this close to vertical in the first frame are taken for uprights."""
+
+LINE_MIN_FRACTION = 0.2
+"""Only lines at least this long (fraction of the height) are followed: a viewer sees a long
+straight line bend, not a short one."""
+
+SEGMENT_MIN_FRACTION = 0.03
+"""Line segments found shorter than this (fraction of the height) are not joined into lines."""
+
+JOIN_ANGLE_DEG = 3.0
+JOIN_OFFSET_PX = 2.5
+JOIN_GAP_FRACTION = 0.06
+"""Two segments are one line when their directions differ by at most JOIN_ANGLE_DEG, each end
+of one lies within JOIN_OFFSET_PX (working px) of the other's line and the gap between them is
+at most JOIN_GAP_FRACTION of the height: the bars of a lattice tower cut its uprights into
+short pieces."""
+
+LINE_SAMPLES = 64
+"""Points followed along each line."""
+
+
 
 @dataclass(frozen=True)
 class Risk:
@@ -65,11 +100,14 @@ class Risk:
     fragments: int
     relief: float
     reasons: tuple[str, ...]
+    line_bend: float = 0.0  # the worst bow of a straight line, fraction of the frame height
+    line_tilt_deg: float = 0.0  # the worst turn of an upright line
 
     def summary(self) -> dict:
         return {"fill_fraction": round(self.fill_fraction, 4),
                 "enclosed_fill_fraction": round(self.enclosed_fill_fraction, 5),
-                "fragments": self.fragments, "relief": self.relief,
+                "fragments": self.fragments, "line_bend": round(self.line_bend, 4),
+                "line_tilt_deg": round(self.line_tilt_deg, 2), "relief": self.relief,
                 "reasons": list(self.reasons)}
 
 
@@ -137,6 +175,119 @@ def end_view_fill(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: Scene
     return float(hole.mean()), float(enclosed[labels].mean())
 
 
+def straight_lines(photo: np.ndarray) -> np.ndarray:
+    """The photo's long straight lines, (N, 2, 2) end points (x, y) in working px: OpenCV's
+    line segment detector, with collinear segments joined."""
+    grey = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
+    found = cv2.createLineSegmentDetector().detect(grey)[0]
+    height = photo.shape[0]
+    if found is None:
+        return np.empty((0, 2, 2), np.float32)
+    segments = found.reshape(-1, 2, 2).astype(np.float64)
+    lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
+    segments = segments[lengths >= SEGMENT_MIN_FRACTION * height]
+    lines = join_collinear(list(segments), JOIN_GAP_FRACTION * height)
+    long = [line for line in lines
+            if np.linalg.norm(line[1] - line[0]) >= LINE_MIN_FRACTION * height]
+    return np.array(long, np.float32).reshape(-1, 2, 2)
+
+
+def join_collinear(segments: list[np.ndarray], gap_px: float) -> list[np.ndarray]:
+    """Segments joined while any two lie on one line: each, longest first, takes in every
+    other that lies on its line, until none does."""
+    lines = sorted(segments, key=lambda s: -np.linalg.norm(s[1] - s[0]))
+    changed = True
+    while changed:
+        changed = False
+        kept: list[np.ndarray] = []
+        pending = np.array(lines).reshape(-1, 2, 2)
+        while len(pending):
+            line, others = pending[0], pending[1:]
+            joins = _on_line(line, others, gap_px)
+            if joins.any():
+                line = _spanning(line, others[joins])
+                changed = True
+            kept.append(line)
+            pending = others[~joins]
+        lines = kept
+    return lines
+
+
+def _on_line(line: np.ndarray, others: np.ndarray, gap_px: float) -> np.ndarray:
+    """Which of the other segments (N, 2, 2) lie on the line of one: parallel, on it, and
+    overlapping it or within gap_px of its ends."""
+    if len(others) == 0:
+        return np.zeros(0, bool)
+    length = float(np.linalg.norm(line[1] - line[0]))
+    direction = (line[1] - line[0]) / length
+    normal = np.array([-direction[1], direction[0]])
+    other = others[:, 1] - others[:, 0]
+    cosine = np.abs(other @ direction) / np.linalg.norm(other, axis=1)
+    offset = np.abs((others - line[0]) @ normal).max(axis=1)
+    along = (others - line[0]) @ direction
+    gap = np.maximum(along.min(axis=1) - length, -along.max(axis=1))
+    return ((cosine >= np.cos(np.radians(JOIN_ANGLE_DEG))) & (offset <= JOIN_OFFSET_PX)
+            & (gap <= gap_px))
+
+
+def _spanning(line: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """The stretch of the line's direction through its start that covers it and the others."""
+    direction = (line[1] - line[0]) / np.linalg.norm(line[1] - line[0])
+    along = np.concatenate([[0.0, float((line[1] - line[0]) @ direction)],
+                            ((others - line[0]) @ direction).ravel()])
+    return np.array([line[0] + along.min() * direction, line[0] + along.max() * direction])
+
+
+def line_runs(lines: np.ndarray, depth: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Sample points (x, y) along each line and their pixels (rows, cols), in runs of one
+    surface: a line is cut where it crosses a depth edge (past it, it is another object's
+    outline, and the two parts move apart as they should), and its samples near the edge are
+    dropped."""
+    edges = cv2.dilate(depth_edges(depth).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    height, width = depth.shape
+    steps = np.linspace(0.0, 1.0, LINE_SAMPLES)[:, None]
+    runs = []
+    for start, end in lines:
+        points = start + steps * (end - start)
+        rows = np.clip(points[:, 1].astype(int), 0, height - 1)
+        cols = np.clip(points[:, 0].astype(int), 0, width - 1)
+        on_edge = edges[rows, cols]
+        cuts = np.flatnonzero(on_edge[1:] != on_edge[:-1]) + 1
+        for run in np.split(np.arange(LINE_SAMPLES), cuts):
+            if len(run) >= LINE_SAMPLES // 4 and not on_edge[run[0]]:
+                runs.append((points[run], np.stack([rows[run], cols[run]])))
+    return runs
+
+
+def line_distortion(runs: list[tuple[np.ndarray, np.ndarray]], depth: np.ndarray, plan: Plan,
+                    scene: SceneGeometry) -> tuple[float, float]:
+    """The worst bow of the runs in the last frame (fraction of its height) and the worst turn
+    of an upright one from the first frame to the last (degrees), over their visible parts."""
+    height_px = 1000
+    width_px = max(1, round(height_px * widest_crop(plan).width_px / widest_crop(plan).height_px))
+    first = output_view(plan, scene, 0.0, width_px, height_px)
+    last = output_view(plan, scene, 1.0, width_px, height_px)
+    nearest = cv2.erode(depth, np.ones((5, 5), np.uint8))
+    worst_bend, worst_tilt = 0.0, 0.0
+    for points, (rows, cols) in runs:
+        world = unproject(scene, points[:, 0], points[:, 1], nearest[rows, cols])
+        at_first = np.stack(project(first, *world), axis=1)
+        at_last = np.stack(project(last, *world), axis=1)
+        seen = ((at_last[:, 0] >= 0) & (at_last[:, 0] < width_px)
+                & (at_last[:, 1] >= 0) & (at_last[:, 1] < height_px))
+        if seen.sum() < LINE_SAMPLES // 4:
+            continue
+        at_first, at_last = at_first[seen], at_last[seen]
+        chord = at_last[-1] - at_last[0]
+        normal = np.array([-chord[1], chord[0]]) / max(float(np.linalg.norm(chord)), 1e-9)
+        worst_bend = max(worst_bend, float(np.abs((at_last - at_last[0]) @ normal).max()))
+        before = at_first[-1] - at_first[0]
+        if abs(np.degrees(np.arctan2(before[0], abs(before[1]) + 1e-9))) <= LINE_UPRIGHT_DEG:
+            turn = np.degrees(np.arctan2(chord[0], chord[1]) - np.arctan2(before[0], before[1]))
+            worst_tilt = max(worst_tilt, abs((turn + 90.0) % 180.0 - 90.0))
+    return worst_bend / height_px, worst_tilt
+
+
 def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometry) -> Risk:
     """The photo's risk at full relief and the largest relief within every budget.
 
@@ -148,6 +299,7 @@ def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometr
     reasons = []
     if fragments > FRAGMENT_COUNT_MAX:
         reasons.append(f"{fragments} depth fragments > {FRAGMENT_COUNT_MAX}")
+    runs = line_runs(straight_lines(photo), depth)
     measured = None
     for relief in RELIEF_STEPS:
         if fragments > FRAGMENT_COUNT_MAX and relief > FRAGMENT_RELIEF_MAX:
@@ -156,10 +308,11 @@ def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometr
         relief_scene = SceneGeometry(scene.width_px, scene.height_px,
                                      nearest_depth(relief_depth))
         fill, enclosed = end_view_fill(photo, relief_depth, plan, relief_scene)
+        bend, tilt = line_distortion(runs, relief_depth, plan, relief_scene)
         if measured is None:
-            measured = (fill, enclosed)
-        if relief == 0.0 or (fill <= FILL_FRACTION_MAX
-                             and enclosed <= ENCLOSED_FILL_FRACTION_MAX):
+            measured = (fill, enclosed, bend, tilt)
+        if relief == 0.0 or (fill <= FILL_FRACTION_MAX and enclosed <= ENCLOSED_FILL_FRACTION_MAX
+                             and bend <= LINE_BEND_MAX and tilt <= LINE_TILT_MAX_DEG):
             break
         if fill > FILL_FRACTION_MAX:
             reasons.append(f"fill {fill:.1%} of the end view > {FILL_FRACTION_MAX:.0%} "
@@ -167,4 +320,11 @@ def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometr
         if enclosed > ENCLOSED_FILL_FRACTION_MAX:
             reasons.append(f"fill inside objects {enclosed:.2%} of the end view > "
                            f"{ENCLOSED_FILL_FRACTION_MAX:.1%} at relief {relief}")
-    return Risk(measured[0], measured[1], fragments, relief, tuple(reasons))
+        if bend > LINE_BEND_MAX:
+            reasons.append(f"a straight line bows by {bend:.1%} of the frame height > "
+                           f"{LINE_BEND_MAX:.1%} at relief {relief}")
+        if tilt > LINE_TILT_MAX_DEG:
+            reasons.append(f"an upright line tilts by {tilt:.1f} degrees > "
+                           f"{LINE_TILT_MAX_DEG:g} at relief {relief}")
+    return Risk(measured[0], measured[1], fragments, relief, tuple(reasons), measured[2],
+                measured[3])

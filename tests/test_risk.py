@@ -4,14 +4,25 @@ import json
 
 import cv2
 import numpy as np
+import pytest
 
 from kbbatch import paper
 from kbbatch.batch import REPORT_NAME, run_folder
-from kbbatch.camera import Crop, Plan, SceneGeometry, depth_from_disparity, nearest_depth
+from kbbatch.camera import Crop, Plan, SceneGeometry, depth_from_disparity, nearest_depth, zoomed
 from kbbatch.depth import DepthOptions
+from kbbatch.depth.ramp import ground_plane_disparity
 from kbbatch.manifest import load_manifest
 from kbbatch.pipeline import ClipOptions
-from kbbatch.risk import FILL_FRACTION_MAX, FRAGMENT_COUNT_MAX, assess, count_fragments, relieved
+from kbbatch.risk import (
+    FILL_FRACTION_MAX,
+    FRAGMENT_COUNT_MAX,
+    LINE_TILT_MAX_DEG,
+    assess,
+    count_fragments,
+    join_collinear,
+    relieved,
+    straight_lines,
+)
 
 from .conftest import textured_image
 
@@ -94,3 +105,43 @@ def test_run_report_and_log_say_when_parallax_was_reduced(tmp_path, quick_preset
     assert by_name["flat.png"]["risk"]["relief"] == 1.0
     assert "slab.png: parallax reduced to" in caplog.text
     assert "flat.png" not in caplog.text
+
+
+def pole_scene(disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray, SceneGeometry, Plan]:
+    """A dark upright pole right of the centre, from high above the horizon down into the
+    ground, on a plain wall, and a dolly in (the no-network prior's pole of photos 20, 24)."""
+    photo = np.full((H, W, 3), 200, np.uint8)
+    photo[int(0.1 * H):int(0.95 * H), int(0.75 * W):int(0.75 * W) + 6] = 40
+    depth = depth_from_disparity(disparity, paper.focal_px(W))
+    scene = SceneGeometry(W, H, nearest_depth(depth))
+    full = Crop(W / 2, H / 2, W, H)
+    return photo, depth, scene, Plan(full, zoomed(full, 1.25))
+
+
+def test_a_pole_laid_on_the_ground_plane_gets_less_parallax_and_the_reason():
+    """Laid on the ground plane below the horizon and on the backdrop above it, an upright
+    pole leant and bowed as the camera moved in: a straight upright line in the photo must
+    stay straight and upright, or the photo gets less parallax."""
+    photo, depth, scene, plan = pole_scene(ground_plane_disparity(H, W))
+    assert len(straight_lines(photo)) >= 1
+    risk = assess(photo, depth, plan, scene)
+    assert risk.line_tilt_deg > LINE_TILT_MAX_DEG
+    assert risk.relief < 1.0
+    assert any("upright line tilts" in reason for reason in risk.reasons)
+    # the same pole on a wall keeps its parallax: it stays upright and straight
+    photo, depth, scene, plan = pole_scene(np.full((H, W), 1.0, np.float32))
+    risk = assess(photo, depth, plan, scene)
+    assert risk.relief == 1.0 and risk.line_tilt_deg < 0.1 and risk.line_bend < 1e-3
+
+
+def test_the_pieces_of_one_line_join_and_other_lines_do_not():
+    """The bars of a lattice tower cut its uprights into pieces: joined, they are one long line."""
+    upper = np.array([[100.0, 10.0], [101.0, 100.0]])
+    lower = np.array([[101.2, 110.0], [102.3, 200.0]])  # the same line, past a 10 px gap
+    beside = np.array([[120.0, 10.0], [121.0, 100.0]])  # parallel, 19 px to the side
+    across = np.array([[100.0, 210.0], [140.0, 300.0]])  # another direction
+    lines = join_collinear([upper, lower, beside, across], gap_px=20.0)
+    assert len(lines) == 3
+    longest = max(lines, key=lambda line: np.linalg.norm(line[1] - line[0]))
+    assert np.linalg.norm(longest[1] - longest[0]) == pytest.approx(190.0, abs=1.0)
+    assert len(join_collinear([upper, lower], gap_px=5.0)) == 2  # too far apart
