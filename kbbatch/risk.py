@@ -61,15 +61,18 @@ ASSESS_WIDTH_PX = 480
 """The end view is judged at this width: its shares, not its detail, matter."""
 
 LINE_BEND_MAX = 0.01
-"""Budget: how far a straight line of the photo may bow at the end of the move, as a fraction
-of the frame's height (11 px at 1080p), from the chord between its ends."""
+"""Budget: how far a straight line of the photo may bow in the first or the last frame, as a
+fraction of the frame's height (11 px at 1080p), from the chord between its ends (a pinhole
+camera keeps every straight line of the world straight)."""
 
 LINE_TILT_MAX_DEG = 4.0
 """Budget: how far an upright line (within LINE_UPRIGHT_DEG of vertical) may turn between the
 first frame and the last (the camera does not turn: a real upright stays upright)."""
 
-LINE_UPRIGHT_DEG = 20.0
-"""Lines this close to vertical in the first frame are taken for uprights."""
+LINE_UPRIGHT_DEG = 10.0
+"""Lines this close to vertical in the photo are taken for uprights. A line on the ground that
+recedes straight ahead is near vertical too, and does turn as the camera moves sideways: kept
+narrow, fewer of those are taken for uprights (those left may cost parallax for nothing)."""
 
 LINE_MIN_FRACTION = 0.2
 """Only lines at least this long (fraction of the height) are followed: a viewer sees a long
@@ -78,17 +81,33 @@ straight line bend, not a short one."""
 SEGMENT_MIN_FRACTION = 0.03
 """Line segments found shorter than this (fraction of the height) are not joined into lines."""
 
+SEGMENTS_MAX = 600
+"""Only this many of the longest segments are joined (the joining is quadratic in their
+number; foliage gives thousands of short ones)."""
+
 JOIN_ANGLE_DEG = 3.0
+"""Two segments are one line when their directions differ by at most this, ..."""
+
 JOIN_OFFSET_PX = 2.5
+"""... each end of one lies within this (working px) of the other's line, ..."""
+
 JOIN_GAP_FRACTION = 0.06
-"""Two segments are one line when their directions differ by at most JOIN_ANGLE_DEG, each end
-of one lies within JOIN_OFFSET_PX (working px) of the other's line and the gap between them is
-at most JOIN_GAP_FRACTION of the height: the bars of a lattice tower cut its uprights into
-short pieces."""
+"""... and the gap between them is at most this fraction of the height: the bars of a lattice
+tower cut its uprights into short pieces."""
 
 LINE_SAMPLES = 64
 """Points followed along each line."""
 
+RUN_MIN_SAMPLES = LINE_SAMPLES // 4
+"""A run of a line (between depth edges, and in the frame) is followed if it keeps this many
+samples."""
+
+LINE_NEAR_WINDOW_PX = 5
+"""A line's depth is the nearest within this window (working px): on an object's outline the
+line is the object's."""
+
+LINE_FRAME_HEIGHT_PX = 1000
+"""Frames are projected at this height to measure lines (the measures are fractions of it)."""
 
 
 @dataclass(frozen=True)
@@ -185,7 +204,8 @@ def straight_lines(photo: np.ndarray) -> np.ndarray:
         return np.empty((0, 2, 2), np.float32)
     segments = found.reshape(-1, 2, 2).astype(np.float64)
     lengths = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
-    segments = segments[lengths >= SEGMENT_MIN_FRACTION * height]
+    longest = np.argsort(-lengths)[:SEGMENTS_MAX]
+    segments = segments[longest[lengths[longest] >= SEGMENT_MIN_FRACTION * height]]
     lines = join_collinear(list(segments), JOIN_GAP_FRACTION * height)
     long = [line for line in lines
             if np.linalg.norm(line[1] - line[0]) >= LINE_MIN_FRACTION * height]
@@ -193,8 +213,8 @@ def straight_lines(photo: np.ndarray) -> np.ndarray:
 
 
 def join_collinear(segments: list[np.ndarray], gap_px: float) -> list[np.ndarray]:
-    """Segments joined while any two lie on one line: each, longest first, takes in every
-    other that lies on its line, until none does."""
+    """Segments (of non-zero length) joined while any two lie on one line: each, longest
+    first, takes in every other that lies on its line, until none does."""
     lines = sorted(segments, key=lambda s: -np.linalg.norm(s[1] - s[0]))
     changed = True
     while changed:
@@ -243,7 +263,8 @@ def line_runs(lines: np.ndarray, depth: np.ndarray) -> list[tuple[np.ndarray, np
     surface: a line is cut where it crosses a depth edge (past it, it is another object's
     outline, and the two parts move apart as they should), and its samples near the edge are
     dropped."""
-    edges = cv2.dilate(depth_edges(depth).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    window = np.ones((LINE_NEAR_WINDOW_PX, LINE_NEAR_WINDOW_PX), np.uint8)
+    edges = cv2.dilate(depth_edges(depth).astype(np.uint8), window) > 0
     height, width = depth.shape
     steps = np.linspace(0.0, 1.0, LINE_SAMPLES)[:, None]
     runs = []
@@ -254,38 +275,47 @@ def line_runs(lines: np.ndarray, depth: np.ndarray) -> list[tuple[np.ndarray, np
         on_edge = edges[rows, cols]
         cuts = np.flatnonzero(on_edge[1:] != on_edge[:-1]) + 1
         for run in np.split(np.arange(LINE_SAMPLES), cuts):
-            if len(run) >= LINE_SAMPLES // 4 and not on_edge[run[0]]:
+            if len(run) >= RUN_MIN_SAMPLES and not on_edge[run[0]]:
                 runs.append((points[run], np.stack([rows[run], cols[run]])))
     return runs
 
 
 def line_distortion(runs: list[tuple[np.ndarray, np.ndarray]], depth: np.ndarray, plan: Plan,
                     scene: SceneGeometry) -> tuple[float, float]:
-    """The worst bow of the runs in the last frame (fraction of its height) and the worst turn
-    of an upright one from the first frame to the last (degrees), over their visible parts."""
-    height_px = 1000
-    width_px = max(1, round(height_px * widest_crop(plan).width_px / widest_crop(plan).height_px))
-    first = output_view(plan, scene, 0.0, width_px, height_px)
-    last = output_view(plan, scene, 1.0, width_px, height_px)
-    nearest = cv2.erode(depth, np.ones((5, 5), np.uint8))
+    """The worst bow of the runs in the first or the last frame (fraction of its height: one of
+    the two is the photo's own view, whichever crop is the wider) and the worst turn of an
+    upright one between them (degrees), over their parts visible in both. (The frames shown,
+    not the overshot view the fill is judged at.)"""
+    height_px = LINE_FRAME_HEIGHT_PX
+    widest = widest_crop(plan)
+    width_px = max(1, round(height_px * widest.width_px / widest.height_px))
+    frames = [output_view(plan, scene, t, width_px, height_px) for t in (0.0, 1.0)]
+    window = np.ones((LINE_NEAR_WINDOW_PX, LINE_NEAR_WINDOW_PX), np.uint8)
+    nearest = cv2.erode(depth, window)
     worst_bend, worst_tilt = 0.0, 0.0
     for points, (rows, cols) in runs:
         world = unproject(scene, points[:, 0], points[:, 1], nearest[rows, cols])
-        at_first = np.stack(project(first, *world), axis=1)
-        at_last = np.stack(project(last, *world), axis=1)
-        seen = ((at_last[:, 0] >= 0) & (at_last[:, 0] < width_px)
-                & (at_last[:, 1] >= 0) & (at_last[:, 1] < height_px))
-        if seen.sum() < LINE_SAMPLES // 4:
+        seen_at = [np.stack(project(view, *world), axis=1) for view in frames]
+        seen = np.ones(len(points), bool)
+        for at in seen_at:
+            seen &= ((at[:, 0] >= 0) & (at[:, 0] < width_px)
+                     & (at[:, 1] >= 0) & (at[:, 1] < height_px))
+        if seen.sum() < RUN_MIN_SAMPLES:
             continue
-        at_first, at_last = at_first[seen], at_last[seen]
-        chord = at_last[-1] - at_last[0]
-        normal = np.array([-chord[1], chord[0]]) / max(float(np.linalg.norm(chord)), 1e-9)
-        worst_bend = max(worst_bend, float(np.abs((at_last - at_last[0]) @ normal).max()))
-        before = at_first[-1] - at_first[0]
-        if abs(np.degrees(np.arctan2(before[0], abs(before[1]) + 1e-9))) <= LINE_UPRIGHT_DEG:
-            turn = np.degrees(np.arctan2(chord[0], chord[1]) - np.arctan2(before[0], before[1]))
+        chords = []
+        for at in seen_at:
+            at = at[seen]
+            chord = at[-1] - at[0]
+            normal = np.array([-chord[1], chord[0]]) / max(float(np.linalg.norm(chord)), 1e-9)
+            worst_bend = max(worst_bend, float(np.abs((at - at[0]) @ normal).max()))
+            chords.append(chord)
+        photo_chord = points[-1] - points[0]
+        if abs(np.degrees(np.arctan2(photo_chord[0], abs(photo_chord[1]) + 1e-9))) \
+                <= LINE_UPRIGHT_DEG:
+            (x0, y0), (x1, y1) = chords
+            turn = np.degrees(np.arctan2(x1, y1) - np.arctan2(x0, y0))
             worst_tilt = max(worst_tilt, abs((turn + 90.0) % 180.0 - 90.0))
-    return worst_bend / height_px, worst_tilt
+    return worst_bend / height_px, float(worst_tilt)
 
 
 def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometry) -> Risk:
@@ -311,20 +341,19 @@ def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometr
         bend, tilt = line_distortion(runs, relief_depth, plan, relief_scene)
         if measured is None:
             measured = (fill, enclosed, bend, tilt)
-        if relief == 0.0 or (fill <= FILL_FRACTION_MAX and enclosed <= ENCLOSED_FILL_FRACTION_MAX
-                             and bend <= LINE_BEND_MAX and tilt <= LINE_TILT_MAX_DEG):
+        over = [message for value, budget, message in (
+            (fill, FILL_FRACTION_MAX,
+             f"fill {fill:.1%} of the end view > {FILL_FRACTION_MAX:.0%}"),
+            (enclosed, ENCLOSED_FILL_FRACTION_MAX,
+             f"fill inside objects {enclosed:.2%} of the end view > "
+             f"{ENCLOSED_FILL_FRACTION_MAX:.1%}"),
+            (bend, LINE_BEND_MAX,
+             f"a straight line bows by {bend:.1%} of the frame height > {LINE_BEND_MAX:.1%}"),
+            (tilt, LINE_TILT_MAX_DEG,
+             f"an upright line tilts by {tilt:.1f} degrees > {LINE_TILT_MAX_DEG:g}"),
+        ) if value > budget]
+        if relief == 0.0 or not over:
             break
-        if fill > FILL_FRACTION_MAX:
-            reasons.append(f"fill {fill:.1%} of the end view > {FILL_FRACTION_MAX:.0%} "
-                           f"at relief {relief}")
-        if enclosed > ENCLOSED_FILL_FRACTION_MAX:
-            reasons.append(f"fill inside objects {enclosed:.2%} of the end view > "
-                           f"{ENCLOSED_FILL_FRACTION_MAX:.1%} at relief {relief}")
-        if bend > LINE_BEND_MAX:
-            reasons.append(f"a straight line bows by {bend:.1%} of the frame height > "
-                           f"{LINE_BEND_MAX:.1%} at relief {relief}")
-        if tilt > LINE_TILT_MAX_DEG:
-            reasons.append(f"an upright line tilts by {tilt:.1f} degrees > "
-                           f"{LINE_TILT_MAX_DEG:g} at relief {relief}")
+        reasons += [f"{message} at relief {relief}" for message in over]
     return Risk(measured[0], measured[1], fragments, relief, tuple(reasons), measured[2],
                 measured[3])

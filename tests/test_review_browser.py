@@ -104,7 +104,8 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
     # The first photo is all but flat (its own depth map, beside it): its clip's last frame
     # is then the edited crop, whatever depth the photo would otherwise get (without the
     # segmentation models the giraffe lies on the ground plane, and its far background moved
-    # 30 levels away from the crop).
+    # 30 levels away from the crop). This test is about the review and its manifest; the
+    # other two photos still go through the depth stages (models or none).
     height, width = read_image(folder / names[0]).shape[:2]
     almost_flat = np.linspace(40000, 40100, height)[:, None].repeat(width, axis=1)
     cv2.imwrite(str(folder / (Path(names[0]).stem + ".disparity.png")),
@@ -131,7 +132,7 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
             photo_height = read_image(folder / names[0]).shape[0]
             room_below = photo_height - (auto_end["center_y"] + auto_end["height"] / 2)
             drag_x, drag_y = SCREEN_DRAG_PX
-            if room_below < 2 * drag_y:
+            if room_below < 2 * drag_y:  # photo px against screen px: the photo is shown smaller
                 drag_y = -drag_y
             end_box = driver.find_element(By.ID, "crop-end")
             ActionChains(driver).move_to_element(end_box).click_and_hold() \
