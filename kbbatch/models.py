@@ -212,7 +212,7 @@ def session(path: Path):
     options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
     # The memory pattern is learnt over a session's first two runs, and one of them ran ISNet
     # in 3.2 s instead of 1.8 s (measured on the 2-core machine); without it every run after
-    # the first takes 1.8 s, so the first two photos of a batch lose nothing.
+    # the first took 1.8 s, with the same output to the bit.
     options.enable_mem_pattern = False
     provider = execution_provider()
     # CUDA sessions keep the CPU provider for the operators CUDA lacks.
