@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -498,20 +499,25 @@ def bridge_gaps(owner: np.ndarray, max_gap_px: int) -> np.ndarray:
     return bridge
 
 
-def find_instances(image: np.ndarray) -> list[Instance]:
-    """Salient objects (people, vehicles, animals) with masks, following the paper's rules."""
+def find_instances(image: np.ndarray,
+                   saliency: Callable[[], np.ndarray | None] | None = None) -> list[Instance]:
+    """Salient objects (people, vehicles, animals) with masks, following the paper's rules.
+
+    saliency gives ISNet's map when an object needs it (SceneContext passes its own, so the
+    pop-up cards reuse the same run: ISNet is most of the depth stage's time); by default it
+    is computed here.
+    """
     shape = image.shape[:2]
     detections = detect(image)
-    if not detections:
-        return []
-    saliency = salient_mask(image)
-    labels = semantic_labels(image)
-    salient = saliency > SALIENT_THRESHOLD if saliency is not None else None
-
     objects = [
         d for d in detections
         if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
     ]
+    if not objects:  # a cup or a chair alone: nothing to shape, so no network to run
+        return []
+    salient_map = saliency() if saliency is not None else salient_mask(image)
+    labels = semantic_labels(image)
+    salient = salient_map > SALIENT_THRESHOLD if salient_map is not None else None
 
     def shape_mask(detection: Detection) -> np.ndarray:
         in_box = _box_mask(shape, detection.box)

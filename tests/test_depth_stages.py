@@ -185,10 +185,45 @@ def test_scene_context_segments_a_photo_once(monkeypatch):
     from kbbatch.depth import SceneContext
 
     calls = []
-    monkeypatch.setattr(segment, "find_instances", lambda image: calls.append(1) or [])
+    monkeypatch.setattr(segment, "find_instances", lambda image, saliency=None: calls.append(1) or [])
     context = SceneContext(textured_image(60, 80, seed=1))
     assert context.instances == [] and context.instances == []
     assert len(calls) == 1
+
+
+@pytest.mark.parametrize("photo_name, people", [("16_indoor_coffee_cup.png", 0),
+                                                 ("03_portrait_two_people_obama_biden.jpg", 2)])
+def test_isnet_runs_once_per_photo(monkeypatch, photo_name, people):
+    """ISNet is most of the depth stage's time (1.8 s of 2 to 3 s on the 2-core machine).
+    The instances and the pop-up cards share one run of it; a cup detected alone (no person,
+    animal or vehicle) needed none for the instances, yet it ran twice: once to shape nothing
+    and once for the pop-up cards (4.5 s of depth for photo 16, 2.3 s now)."""
+    import cv2
+
+    from kbbatch import segment
+    from kbbatch.camera import working_size
+    from kbbatch.depth import DepthOptions, estimate_disparity
+    from kbbatch.images import read_image
+
+    models_dir = SHARED / "models"
+    if not (models_dir / "isnet_dis_medium.onnx").is_file():
+        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
+    monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
+    photo = read_image(SHARED / "photos" / photo_name)
+    width, height = working_size(photo.shape[1], photo.shape[0])
+    photo = cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+    runs = []
+    real_salient_mask = segment.salient_mask
+    monkeypatch.setattr(segment, "salient_mask",
+                        lambda image: runs.append(1) or real_salient_mask(image))
+    found = []
+    real_find_instances = segment.find_instances
+    monkeypatch.setattr(segment, "find_instances",
+                        lambda *args: found.append(real_find_instances(*args)) or found[-1])
+    result = estimate_disparity(photo, None, DepthOptions(backend="popup"))
+    assert len(found) == 1 and len(found[0]) == people
+    assert len(runs) == 1, f"ISNet ran {len(runs)} times for one photo"
+    assert result.disparity.shape == (height, width)
 
 
 def test_a_frame_or_a_lattice_is_no_upright_card():

@@ -55,7 +55,7 @@ class SceneContext:
     def instances(self) -> list:
         from kbbatch.segment import find_instances
 
-        return find_instances(self.image)
+        return find_instances(self.image, lambda: self.saliency)
 
     @functools.cached_property
     def saliency(self) -> np.ndarray | None:
