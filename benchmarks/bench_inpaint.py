@@ -10,7 +10,9 @@
    disparity, holes filled, and compared with the real right image: PSNR and SSIM over the
    pixels the left view can see, over the disoccluded pixels alone, and in a band of 8 px
    around the depth edges of the rendered view. Rows: no fill, OpenCV
-   Telea on the frame, ours (fill once in colour and depth, extend the cloud, render).
+   Telea on the frame, ours (fill once in colour and depth, extend the cloud, render), and
+   the true fill (the real right image in every hole): what no fill can beat, since the
+   pixels outside the holes are the render's.
 """
 
 from __future__ import annotations
@@ -156,6 +158,8 @@ def view_rows() -> None:
                                        5, cv2.INPAINT_TELEA)
         added, _ = extend_at_view(cloud, right_view, focal, np.ones_like(seen), 1.0)
         outputs["ours"] = render_frame(cloud.extended(added), right_view, focal)
+        # The ceiling of any fill: the true right image in every hole, the render elsewhere.
+        outputs["true fill"] = np.where(raw.covered[..., None], outputs["no fill"], right)
         for method, image in outputs.items():
             similarity = ssim_map(image, right)
             row = []
