@@ -61,6 +61,17 @@ REFINE_SWEEPS = 2
 VOTE_RADIUS_PX = 2
 """Exemplar fill: the patches voting on a pixel's final colour lie within this radius."""
 
+COARSE_HOLE_PX = 6
+"""Exemplar fill: a hole whose thickest part lies farther than this from its border (working
+px) is matched at half the size first, and so on, ..."""
+
+PYRAMID_LEVELS_MAX = 3
+"""... at most this many times."""
+
+COARSE_TO_FINE_ROUNDS = 3
+"""Exemplar fill: PatchMatch sweeps, each followed by a vote, at each level finer than the
+coarsest."""
+
 
 ColourInpainter = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """(RGB uint8 image, uint8 mask of pixels to fill) -> RGB uint8 image; e.g. an ONNX network.
@@ -128,23 +139,111 @@ def fill_background(
     synthesis in the same ring order: each pixel copies real background pixels, found by
     patch matching among sources at least as far as its filled depth, then overlapping
     patches vote: texture, not a flat blob. Blocked pixels (the near side of a hole border)
-    and pixels without depth are never sources.
+    and pixels without depth are never sources. A thick hole is matched coarse to fine
+    (_match_coarse_to_fine).
     """
     filled_colour = colour.astype(np.float32).copy()
     filled_depth = depth.astype(np.float32).copy()
     source = ~hole & ~blocked & np.isfinite(filled_depth) & (filled_depth > 0)
+    ring_rows, ring_cols = _in_ring_order(source, hole)
+    _grow_far_depth(filled_depth, source, ring_rows, ring_cols, SEARCH_RADIUS_PX)
+    _match_coarse_to_fine(filled_colour, filled_depth, source, hole, _pyramid_levels(hole))
+    return filled_colour, filled_depth
+
+
+def _in_ring_order(source: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows and columns of the hole's pixels in onion-peel order (_ring_order)."""
     rows, cols = np.nonzero(hole)
     order = _ring_order(source, rows.astype(np.int64), cols.astype(np.int64))
-    ring_rows, ring_cols = rows[order].astype(np.int64), cols[order].astype(np.int64)
-    _grow_far_depth(filled_depth, source, ring_rows, ring_cols, SEARCH_RADIUS_PX)
+    return rows[order].astype(np.int64), cols[order].astype(np.int64)
+
+
+def _pyramid_levels(hole: np.ndarray) -> int:
+    """How many times a hole is halved before it is matched: until its thickest part is at
+    most COARSE_HOLE_PX from its border (0 for thin holes: matched at their own size)."""
+    if not hole.any():
+        return 0
+    thickness = float(cv2.distanceTransform(hole.astype(np.uint8), cv2.DIST_L2, 3).max())
+    levels = 0
+    height, width = hole.shape
+    while (thickness > COARSE_HOLE_PX and levels < PYRAMID_LEVELS_MAX
+           and min(height, width) >> (levels + 1) >= 2 * SEARCH_RADIUS_PX):
+        thickness /= 2
+        levels += 1
+    return levels
+
+
+def _match_coarse_to_fine(colour: np.ndarray, depth: np.ndarray, source: np.ndarray,
+                          hole: np.ndarray, levels: int, scale: int = 1) -> np.ndarray:
+    """Fill colour at the hole's pixels in place; returns each one's source pixel.
+
+    At the coarsest level the hole is synthesised ring by ring and refined; each finer level
+    starts from the coarser one's sources, enlarged, and improves them in a few rounds of
+    PatchMatch and voting (Wexler et al.'s completion). Matched at its own size only, a thick
+    hole's inner rings are decided from what its outer rings copied, so an edge running into
+    it (a curtain's border) drifts and breaks into steps; the coarse level sees where the
+    edge goes across the whole hole.
+    """
+    ring_rows, ring_cols = _in_ring_order(source, hole)
     nearest = _nearest_sources(source, hole)
-    offsets = _synthesise(filled_colour, filled_depth, source, ring_rows, ring_cols, nearest)
-    for sweep in range(REFINE_SWEEPS):
+    search = max(SEARCH_RADIUS_PX // scale, 2 * PATCH_RADIUS_PX)  # the same reach in the photo
+    if levels > 0:
+        coarse_source = _halved(source.astype(np.float32)) >= 1.0  # wholly source pixels
+        coarse_hole = _halved(hole.astype(np.float32)) > 0.0  # any hole pixel
+        if coarse_source.sum() < coarse_hole.sum():  # sources too scattered (sparse depth)
+            levels = 0
+    if levels == 0:
+        offsets = _synthesise(colour, depth, source, ring_rows, ring_cols, nearest, search)
+        rounds, vote_each = REFINE_SWEEPS, False
+    else:
+        coarse = [_halved(layer) for layer in (colour, depth)]
+        coarse_offsets = _match_coarse_to_fine(*coarse, coarse_source, coarse_hole, levels - 1,
+                                               2 * scale)
+        offsets = _enlarged_offsets(colour, depth, source, coarse_offsets, ring_rows,
+                                    ring_cols, nearest)
+        rounds, vote_each = COARSE_TO_FINE_ROUNDS, False
+    for sweep in range(rounds):
         step = 1 if sweep % 2 else -1  # inward, then outward, ...
-        _refine(filled_colour, filled_depth, source, offsets, ring_rows[::step],
-                ring_cols[::step], sweep)
-    _vote(filled_colour, offsets, ring_rows, ring_cols)
-    return filled_colour, filled_depth
+        _refine(colour, depth, source, offsets, ring_rows[::step], ring_cols[::step], sweep,
+                search)
+        if vote_each or sweep == rounds - 1:
+            _vote(colour, source, offsets, ring_rows, ring_cols)
+    return offsets
+
+
+def _halved(image: np.ndarray) -> np.ndarray:
+    """image at half the size, each pixel the mean of a 2x2 block (the last row and column
+    repeated where a side is odd)."""
+    height, width = image.shape[:2]
+    padding = ((0, height % 2), (0, width % 2)) + ((0, 0),) * (image.ndim - 2)
+    padded = np.pad(image.astype(np.float32), padding, mode="edge")
+    shape = (padded.shape[0] // 2, 2, padded.shape[1] // 2, 2) + padded.shape[2:]
+    return padded.reshape(shape).mean(axis=(1, 3))
+
+
+@numba.njit(cache=True, nogil=True)
+def _enlarged_offsets(colour, depth, source, coarse, rows, cols, nearest):
+    # Each hole pixel starts from its coarse pixel's source, at twice the distance, with its
+    # place inside the 2x2 block; where that is no usable source (a sliver of the near side
+    # at the fine size), from its nearest source. Copies the colours too.
+    height, width = source.shape
+    offsets = np.full((height, width, 2), -1, np.int64)
+    for k in range(rows.shape[0]):
+        y, x = rows[k], cols[k]
+        cy = 2 * coarse[y // 2, x // 2, 0] + y % 2
+        cx = 2 * coarse[y // 2, x // 2, 1] + x % 2
+        minimum = depth[y, x] * (1.0 - FOREGROUND_MARGIN)
+        if (coarse[y // 2, x // 2, 0] < 0 or not (0 <= cy < height and 0 <= cx < width)
+                or not source[cy, cx] or depth[cy, cx] < minimum):
+            cy, cx = _nearest_source(depth, source, y, x, minimum)
+        if cy < 0:
+            cy, cx = nearest[y, x, 0], nearest[y, x, 1]
+        if cy >= 0:
+            offsets[y, x, 0] = cy
+            offsets[y, x, 1] = cx
+            for c in range(3):
+                colour[y, x, c] = colour[cy, cx, c]
+    return offsets
 
 
 def _nearest_sources(source: np.ndarray, hole: np.ndarray) -> np.ndarray:
@@ -300,13 +399,12 @@ def _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum):
 
 
 @numba.njit(cache=True, nogil=True)
-def _synthesise(colour, depth, source, rows, cols, nearest):
+def _synthesise(colour, depth, source, rows, cols, nearest, search):
     # Exemplar synthesis in ring order: each hole pixel copies the centre of the best
     # matching source patch among coherent candidates (its filled neighbours' sources,
-    # shifted) and random ones within SEARCH_RADIUS_PX; a candidate must be a source at
+    # shifted) and random ones within search px; a candidate must be a source at
     # least as far as the pixel's filled depth. Returns the source of each filled pixel.
     height, width = source.shape
-    search = SEARCH_RADIUS_PX
     valid = source.copy()  # sources and copied pixels: what target patches are compared on
     filled = source.copy()  # ... and pixels given a neighbour mean (not compared on)
     offsets = np.full((height, width, 2), -1, np.int64)
@@ -377,7 +475,7 @@ def _nearest_source(depth, source, y, x, minimum):
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine(colour, depth, source, offsets, rows, cols, sweep):
+def _refine(colour, depth, source, offsets, rows, cols, sweep, search):
     # One PatchMatch sweep over the filled pixels, now that every patch is complete: each
     # tries its neighbours' sources (shifted) and random ones around its own at shrinking
     # distances, and keeps the best far enough source.
@@ -401,7 +499,7 @@ def _refine(colour, depth, source, offsets, rows, cols, sweep):
                 score = _candidate_score(colour, depth, valid, source, y, x, cy, cx, minimum)
                 if score < best_score:
                     best_score, best_y, best_x = score, cy, cx
-        reach = SEARCH_RADIUS_PX
+        reach = search
         j = 0
         while reach >= 1 and best_y >= 0:
             h = _candidate_hash(y, x, 1000 * (sweep + 1) + j)
@@ -437,9 +535,11 @@ def _neighbour_mean(colour, depth, valid, y, x, minimum):
 
 
 @numba.njit(cache=True, nogil=True)
-def _vote(colour, offsets, rows, cols):
+def _vote(colour, source, offsets, rows, cols):
     # Each filled pixel becomes the mean of what the patches of its filled neighbours copied
-    # onto it (Wexler et al.'s voting): coherent copies stay sharp, stray ones blend in.
+    # onto it (Wexler et al.'s voting): coherent copies stay sharp, stray ones blend in. A
+    # patch's pixel that is neither a source nor filled (the near side beside a source)
+    # casts no vote.
     height, width = offsets.shape[:2]
     radius = VOTE_RADIUS_PX
     voted = np.empty((rows.shape[0], 3), np.float32)
@@ -452,7 +552,8 @@ def _vote(colour, offsets, rows, cols):
                 yy, xx = y + dy, x + dx
                 if 0 <= yy < height and 0 <= xx < width and offsets[yy, xx, 0] >= 0:
                     sy, sx = offsets[yy, xx, 0] - dy, offsets[yy, xx, 1] - dx
-                    if 0 <= sy < height and 0 <= sx < width:
+                    if (0 <= sy < height and 0 <= sx < width
+                            and (source[sy, sx] or offsets[sy, sx, 0] >= 0)):
                         for c in range(3):
                             total[c] += colour[sy, sx, c]
                         count += 1
