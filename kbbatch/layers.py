@@ -170,6 +170,20 @@ def _held_to(colour: np.ndarray, clean: np.ndarray, tolerance: np.ndarray) -> np
     return np.clip(clean + np.clip(colour - clean, -tolerance, tolerance), 0, 255)
 
 
+def _held_near(colour: np.ndarray, clean: np.ndarray, behind: np.ndarray,
+               tolerance: np.ndarray) -> np.ndarray:
+    """colour held to within tolerance of the clean colour; where it strays further, to within
+    tolerance of the texture continued behind instead (equal to clean on a smooth background).
+
+    Held to the flat clean mean, a textured background (a field's dark specks) lost its
+    texture in a strip along the object's old outline, which the move uncovered as a pale
+    smooth band beside a post (photo 33). Pixels within tolerance keep their own colour, so the
+    start view keeps the photo's structure wherever it did."""
+    held = _held_to(colour, clean, tolerance)
+    strays = np.any(np.abs(held - colour) > 0.5, axis=-1, keepdims=True)
+    return np.where(strays, _held_to(colour, behind, tolerance), held)
+
+
 def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
                      ) -> tuple[np.ndarray, np.ndarray]:
     """Mean of image over the weighted pixels in a box (the side of 2 radius + 1), and the
@@ -472,21 +486,22 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
     tolerance = EDGE_SLACK + (texture[:, None] - EDGE_SLACK) * from_edge
-    kept = _held_to(second, back_clean, tolerance)
+    behind = np.clip(back_behind, 0, 255)
+    kept = _held_near(second, back_clean, behind, tolerance)
     strays = np.any(np.abs(kept - second) > 0.5, axis=-1, keepdims=True) & ~mostly_front
     first = np.where(strays, _into_gamut(_remainder(pixel, np.round(kept), 1 - share),
                                          np.clip(front_here, 0, 255)), first)
     first = np.round(np.clip(first, 0, 255))
     second = _remainder(pixel, first, share)
     second = np.where(mostly_front, _into_gamut(second, np.clip(front_here, 0, 255)),
-                      _held_to(second, back_clean, tolerance))
+                      _held_near(second, back_clean, behind, tolerance))
     second = np.round(np.clip(second, 0, 255))
     front_band = np.where(a >= 1.0, pixel, np.where(mostly_front, second, first))
     # A band pixel the matte left wholly to the background is held to the same allowance: near
     # the edge, what strays further is dropped (the start view loses a faint rim) rather than
     # left behind.
     whole = np.where(background_here[:, None],
-                     np.round(_held_to(pixel, back_clean, tolerance)), pixel)
+                     np.round(_held_near(pixel, back_clean, behind, tolerance)), pixel)
     back_band = np.where(a <= 0.0, whole, np.where(mostly_front, first, second))
 
     alpha = (near_mask > 0.5).astype(np.float32)

@@ -176,6 +176,35 @@ def test_the_background_behind_an_objects_edge_keeps_its_texture():
     assert flat_layers.background[flat_layers.band & flat_layers.far].std(axis=0).max() < 2
 
 
+def test_the_background_beside_an_objects_edge_keeps_its_texture():
+    """Beside an object's edge the pixels are mostly the field's own, held near its clean
+    colour there so that the object's soft tail does not stay behind. Held to the flat clean
+    mean, the field's specks went too: once the post moved on, a pale smooth band traced its
+    old outline (photo 33). Where a pixel strays, it is held to the field's texture continued
+    from beyond the band instead; the post's colour stays out of it."""
+    height, width = 120, 160
+    rng = np.random.default_rng(5)
+    field = np.clip(np.array([200.0, 170.0, 110.0]) + rng.normal(0, 25, (height, width, 3)),
+                    0, 255)
+    field = cv2.GaussianBlur(field, (0, 0), 0.7)
+    post = np.zeros((height, width), bool)
+    post[:, 70:100] = True
+    share = cv2.GaussianBlur(post.astype(np.float32), (0, 0), 1.5)[..., None]  # a soft edge
+    post_colour = np.array([110.0, 60.0, 30.0])
+    photo = field * (1 - share) + post_colour * share
+    depth = np.where(post, 500.0, 3000.0).astype(np.float32)
+    layers = split_layers(photo.astype(np.uint8), depth)
+    columns = np.arange(width)[None, :].repeat(height, axis=0)
+    from_edge = np.minimum(np.abs(columns - 69.5), np.abs(columns - 99.5))
+    beside = layers.band & ~post & (from_edge <= 4)  # within 4 px outside the post
+    assert beside.sum() > 800
+    colours = layers.background[beside].astype(np.float32)
+    clean = field[:, layers.band.sum(axis=0) == 0].reshape(-1, 3)  # columns away from the band
+    assert colours.std(axis=0).mean() > 0.7 * clean.std(axis=0).mean(), "a flat strip"
+    assert np.abs(colours.mean(axis=0) - clean.mean(axis=0)).max() < 5
+    assert np.linalg.norm(colours - post_colour, axis=-1).min() > 100, "the post's colour"
+
+
 def test_an_objects_own_light_grain_is_not_taken_for_transparency():
     """A wooden post's light grain lies on the colour line between its brown and the pale
     field behind it: read as alpha, a strip of the post went half transparent, and its far
