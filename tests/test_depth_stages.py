@@ -185,7 +185,8 @@ def test_scene_context_segments_a_photo_once(monkeypatch):
     from kbbatch.depth import SceneContext
 
     calls = []
-    monkeypatch.setattr(segment, "find_instances", lambda image, saliency=None: calls.append(1) or [])
+    monkeypatch.setattr(segment, "find_instances",
+                        lambda image, saliency=None: calls.append(1) or [])
     context = SceneContext(textured_image(60, 80, seed=1))
     assert context.instances == [] and context.instances == []
     assert len(calls) == 1
