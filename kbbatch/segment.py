@@ -64,6 +64,12 @@ as the network drew it, a strip of window beside Obama's hair (photo 02) and a c
 curtain beside Biden's (03) travelled with them. (The per-pixel colour test before the cut
 took grey hair away in holes; the cut does not.)"""
 
+JAW_SALIENT_SLACK_PX = 2
+"""Where the outline is kept as drawn (jaw_region), it is ISNet's, within this many working px:
+the person mask is also DeepLab's class, whose outline at 257 px runs well off the person,
+and kept there it gave Obama's card a wedge of window above the shoulder beside the neck
+(photo 02), which the move tore from the curtain beside it as a ragged notch."""
+
 HEAD_SEARCH_FRACTION = 0.5
 """The neck is looked for in the top half of a person box."""
 
@@ -547,6 +553,9 @@ def find_instances(image: np.ndarray,
             best = int(np.argmax(overlaps))
             masks[best] = masks[best] | accessory_mask
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * MASK_ERODE_PX + 1,) * 2)
+    if salient is not None:  # the jaw keeps ISNet's outline, not DeepLab's coarse one
+        slack = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * JAW_SALIENT_SLACK_PX + 1,) * 2)
+        near_salient = cv2.dilate(salient.astype(np.uint8), slack) > 0
     heads = [head_region(d.box, shape) if d.class_name == "person" else None for d in objects]
     kept = []
     for detection, mask, head in zip(objects, masks, heads, strict=True):
@@ -555,7 +564,7 @@ def find_instances(image: np.ndarray,
                    else snap_to_colour_edges(mask, image))
         if detection.class_name == "person":  # nor is a jaw's retouched rim: it is kept
             jaw = jaw_region(mask, detection.box)
-            snapped = np.where(jaw, mask, snapped)
+            snapped = np.where(jaw, mask if salient is None else mask & near_salient, snapped)
         mask = clean_mask(snapped, keep=head)
         # the face is its main pieces (a stray pixel of it is no face to keep whole)
         face = drop_fragments(mask & head, min_px=0) if head is not None else None
