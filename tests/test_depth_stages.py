@@ -117,8 +117,9 @@ def test_depth_cache_reuses_and_separates_settings(tmp_path, monkeypatch):
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 2
 
 
-def two_people_at_working_size(monkeypatch, model_file: str) -> np.ndarray:
-    """Photo 03 at the working size, with the real models in ../shared selected."""
+def shared_photo_at_working_size(monkeypatch, photo_name: str,
+                                 model_file: str = "isnet_dis_medium.onnx") -> np.ndarray:
+    """A photo of ../shared at the working size, with the real models in ../shared selected."""
     import cv2
 
     from kbbatch.camera import working_size
@@ -128,9 +129,15 @@ def two_people_at_working_size(monkeypatch, model_file: str) -> np.ndarray:
     if not (models_dir / model_file).is_file():
         pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
     monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
-    photo = read_image(SHARED / "photos" / "03_portrait_two_people_obama_biden.jpg")
+    photo = read_image(SHARED / "photos" / photo_name)
     width, height = working_size(photo.shape[1], photo.shape[0])
     return cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def two_people_at_working_size(monkeypatch, model_file: str) -> np.ndarray:
+    """Photo 03 at the working size, with the real models in ../shared selected."""
+    return shared_photo_at_working_size(monkeypatch, "03_portrait_two_people_obama_biden.jpg",
+                                        model_file)
 
 
 def test_real_models_find_two_people(monkeypatch):
@@ -199,20 +206,11 @@ def test_isnet_runs_once_per_photo(monkeypatch, photo_name, people):
     The instances and the pop-up cards share one run of it; a cup detected alone (no person,
     animal or vehicle) needed none for the instances, yet it ran twice: once to shape nothing
     and once for the pop-up cards (4.5 s of depth for photo 16, 2.3 s now)."""
-    import cv2
-
     from kbbatch import segment
-    from kbbatch.camera import working_size
     from kbbatch.depth import DepthOptions, estimate_disparity
-    from kbbatch.images import read_image
 
-    models_dir = SHARED / "models"
-    if not (models_dir / "isnet_dis_medium.onnx").is_file():
-        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
-    monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
-    photo = read_image(SHARED / "photos" / photo_name)
-    width, height = working_size(photo.shape[1], photo.shape[0])
-    photo = cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+    photo = shared_photo_at_working_size(monkeypatch, photo_name)
+    height, width = photo.shape[:2]
     runs = []
     real_salient_mask = segment.salient_mask
     monkeypatch.setattr(segment, "salient_mask",
@@ -271,16 +269,8 @@ def test_a_persons_card_keeps_no_background_beside_the_neck(monkeypatch, photo_n
     import cv2
 
     from kbbatch import segment
-    from kbbatch.camera import working_size
-    from kbbatch.images import read_image
 
-    models_dir = SHARED / "models"
-    if not (models_dir / "isnet_dis_medium.onnx").is_file():
-        pytest.skip(f"real models not found in {models_dir} (../shared is developer/CI only)")
-    monkeypatch.setenv("KBBATCH_MODELS", str(models_dir))
-    photo = read_image(SHARED / "photos" / photo_name)
-    width, height = working_size(photo.shape[1], photo.shape[0])
-    photo = cv2.resize(photo, (width, height), interpolation=cv2.INTER_AREA)
+    photo = shared_photo_at_working_size(monkeypatch, photo_name)
     salient = segment.salient_mask(photo) > segment.SALIENT_THRESHOLD
     near_salient = cv2.dilate(salient.astype(np.uint8),
                               cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))) > 0

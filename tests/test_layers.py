@@ -148,10 +148,12 @@ def test_background_texture_beside_an_object_is_not_taken_for_its_soft_edge():
     assert (layers.alpha[beside] > 0.1).mean() < 0.03
 
 
-def test_the_background_behind_an_objects_edge_keeps_its_texture():
-    """Behind an object's edge the background is unknown; its flat clean mean showed as a
-    smooth strip beside a post in a grass field once the post moved away. The field's own
-    texture continues there, without the object's colour, and flat backgrounds stay flat."""
+POST_COLOUR = np.array([110.0, 60.0, 30.0])
+
+
+def post_in_a_field() -> tuple[np.ndarray, ...]:
+    """(field, post mask, the post's soft share, photo, depth): a brown post with a soft edge,
+    30 px wide, standing in a speckled field, 120 x 160 px."""
     height, width = 120, 160
     rng = np.random.default_rng(5)
     field = np.clip(np.array([200.0, 170.0, 110.0]) + rng.normal(0, 25, (height, width, 3)),
@@ -160,18 +162,25 @@ def test_the_background_behind_an_objects_edge_keeps_its_texture():
     post = np.zeros((height, width), bool)
     post[:, 70:100] = True
     share = cv2.GaussianBlur(post.astype(np.float32), (0, 0), 1.5)[..., None]  # a soft edge
-    photo = field * (1 - share) + np.array([110.0, 60.0, 30.0]) * share
+    photo = field * (1 - share) + POST_COLOUR * share
     depth = np.where(post, 500.0, 3000.0).astype(np.float32)
+    return field, post, share, photo, depth
+
+
+def test_the_background_behind_an_objects_edge_keeps_its_texture():
+    """Behind an object's edge the background is unknown; its flat clean mean showed as a
+    smooth strip beside a post in a grass field once the post moved away. The field's own
+    texture continues there, without the object's colour, and flat backgrounds stay flat."""
+    field, post, share, photo, depth = post_in_a_field()
     layers = split_layers(photo.astype(np.uint8), depth)
     behind = layers.band & (layers.alpha >= 0.5) & layers.far  # hidden by the object's edge
     assert behind.sum() > 200
     colours = layers.background[behind].astype(np.float32)
     clean = field[:, layers.band.sum(axis=0) == 0].reshape(-1, 3)  # columns away from the band
     assert colours.std(axis=0).mean() > 0.5 * clean.std(axis=0).mean(), "a flat strip"
-    post_colour = np.array([110.0, 60.0, 30.0])
     assert np.abs(colours.mean(axis=0) - field.reshape(-1, 3).mean(axis=0)).max() < 20
-    assert np.linalg.norm(colours - post_colour, axis=-1).min() > 40, "the post's colour"
-    flat = 180.0 * (1 - share) + np.array([110.0, 60.0, 30.0]) * share
+    assert np.linalg.norm(colours - POST_COLOUR, axis=-1).min() > 40, "the post's colour"
+    flat = 180.0 * (1 - share) + POST_COLOUR * share
     flat_layers = split_layers(flat.astype(np.uint8), depth)
     assert flat_layers.background[flat_layers.band & flat_layers.far].std(axis=0).max() < 2
 
@@ -183,18 +192,9 @@ def test_the_background_beside_an_objects_edge_keeps_its_texture():
     old outline (photo 33: the spread within 4 px of the edge was 4.6 levels against the
     field's 10.2). A pixel may now be held to the field's texture continued from beyond the
     band instead, where that changes it less (5.8); the post's colour stays out of it."""
-    height, width = 120, 160
-    rng = np.random.default_rng(5)
-    field = np.clip(np.array([200.0, 170.0, 110.0]) + rng.normal(0, 25, (height, width, 3)),
-                    0, 255)
-    field = cv2.GaussianBlur(field, (0, 0), 0.7)
-    post = np.zeros((height, width), bool)
-    post[:, 70:100] = True
-    share = cv2.GaussianBlur(post.astype(np.float32), (0, 0), 1.5)[..., None]  # a soft edge
-    post_colour = np.array([110.0, 60.0, 30.0])
-    photo = field * (1 - share) + post_colour * share
-    depth = np.where(post, 500.0, 3000.0).astype(np.float32)
+    field, post, _, photo, depth = post_in_a_field()
     layers = split_layers(photo.astype(np.uint8), depth)
+    height, width = post.shape
     columns = np.arange(width)[None, :].repeat(height, axis=0)
     from_edge = np.minimum(np.abs(columns - 69.5), np.abs(columns - 99.5))
     beside = layers.band & ~post & (from_edge <= 4)  # within 4 px outside the post
@@ -203,7 +203,7 @@ def test_the_background_beside_an_objects_edge_keeps_its_texture():
     clean = field[:, layers.band.sum(axis=0) == 0].reshape(-1, 3)  # columns away from the band
     assert colours.std(axis=0).mean() > 0.5 * clean.std(axis=0).mean(), "a flat strip"
     assert np.abs(colours.mean(axis=0) - clean.mean(axis=0)).max() < 5
-    assert np.linalg.norm(colours - post_colour, axis=-1).min() > 100, "the post's colour"
+    assert np.linalg.norm(colours - POST_COLOUR, axis=-1).min() > 100, "the post's colour"
 
 
 def test_an_objects_own_light_grain_is_not_taken_for_transparency():
