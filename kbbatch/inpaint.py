@@ -69,8 +69,8 @@ PYRAMID_LEVELS_MAX = 3
 """... at most this many times."""
 
 COARSE_TO_FINE_ROUNDS = 3
-"""Exemplar fill: PatchMatch sweeps, each followed by a vote, at each level finer than the
-coarsest."""
+"""Exemplar fill: PatchMatch sweeps at each level finer than the coarsest, before its vote (a
+vote after every sweep blurred stripes)."""
 
 
 ColourInpainter = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -145,9 +145,10 @@ def fill_background(
     filled_colour = colour.astype(np.float32).copy()
     filled_depth = depth.astype(np.float32).copy()
     source = ~hole & ~blocked & np.isfinite(filled_depth) & (filled_depth > 0)
-    ring_rows, ring_cols = _in_ring_order(source, hole)
-    _grow_far_depth(filled_depth, source, ring_rows, ring_cols, SEARCH_RADIUS_PX)
-    _match_coarse_to_fine(filled_colour, filled_depth, source, hole, _pyramid_levels(hole))
+    ring = _in_ring_order(source, hole)
+    _grow_far_depth(filled_depth, source, *ring, SEARCH_RADIUS_PX)
+    _match_coarse_to_fine(filled_colour, filled_depth, source, hole, _pyramid_levels(hole),
+                          ring=ring)
     return filled_colour, filled_depth
 
 
@@ -174,17 +175,19 @@ def _pyramid_levels(hole: np.ndarray) -> int:
 
 
 def _match_coarse_to_fine(colour: np.ndarray, depth: np.ndarray, source: np.ndarray,
-                          hole: np.ndarray, levels: int, scale: int = 1) -> np.ndarray:
-    """Fill colour at the hole's pixels in place; returns each one's source pixel.
+                          hole: np.ndarray, levels: int, scale: int = 1,
+                          ring: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Fill colour at the hole's pixels in place; returns each one's source pixel. ring: the
+    hole's pixels in ring order, when the caller has them (scale: this level's, 1 the photo's).
 
     At the coarsest level the hole is synthesised ring by ring and refined; each finer level
-    starts from the coarser one's sources, enlarged, and improves them in a few rounds of
-    PatchMatch and voting (Wexler et al.'s completion). Matched at its own size only, a thick
+    starts from the coarser one's sources, enlarged, and improves them with PatchMatch
+    sweeps, then votes (after Wexler et al.'s completion). Matched at its own size only, a thick
     hole's inner rings are decided from what its outer rings copied, so an edge running into
     it (a curtain's border) drifts and breaks into steps; the coarse level sees where the
     edge goes across the whole hole.
     """
-    ring_rows, ring_cols = _in_ring_order(source, hole)
+    ring_rows, ring_cols = ring if ring is not None else _in_ring_order(source, hole)
     nearest = _nearest_sources(source, hole)
     search = max(SEARCH_RADIUS_PX // scale, 2 * PATCH_RADIUS_PX)  # the same reach in the photo
     if levels > 0:
@@ -194,20 +197,19 @@ def _match_coarse_to_fine(colour: np.ndarray, depth: np.ndarray, source: np.ndar
             levels = 0
     if levels == 0:
         offsets = _synthesise(colour, depth, source, ring_rows, ring_cols, nearest, search)
-        rounds, vote_each = REFINE_SWEEPS, False
+        rounds = REFINE_SWEEPS
     else:
         coarse = [_halved(layer) for layer in (colour, depth)]
         coarse_offsets = _match_coarse_to_fine(*coarse, coarse_source, coarse_hole, levels - 1,
                                                2 * scale)
         offsets = _enlarged_offsets(colour, depth, source, coarse_offsets, ring_rows,
                                     ring_cols, nearest)
-        rounds, vote_each = COARSE_TO_FINE_ROUNDS, False
+        rounds = COARSE_TO_FINE_ROUNDS
     for sweep in range(rounds):
         step = 1 if sweep % 2 else -1  # inward, then outward, ...
         _refine(colour, depth, source, offsets, ring_rows[::step], ring_cols[::step], sweep,
                 search)
-        if vote_each or sweep == rounds - 1:
-            _vote(colour, source, offsets, ring_rows, ring_cols)
+    _vote(colour, source, offsets, ring_rows, ring_cols)
     return offsets
 
 
