@@ -90,6 +90,11 @@ over MIXED_EDGE_PX more. Behind a shoulder against chandelier lights (photo 03) 
 spread took every mixed pixel for texture: their dark half stayed behind as a line tracing
 the old outline."""
 
+LEVEL_SIGMA_PX = 3.0
+"""Gaussian sigma (working px) over which the background's level (its shading, as against its
+texture) is read from clean pixels. A box's ripple left stripes' phase in the level, and a
+narrower reach carried a field's dark speck across the band as a streak (photo 33)."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -196,6 +201,13 @@ def _normalised_blur(image: np.ndarray, weight: np.ndarray, radius: int
     total = cv2.blur(weight, size)
     weighted = cv2.blur(image * weight[..., None], size)
     return weighted / np.maximum(total, 1e-6)[..., None], total
+
+
+def _gaussian_mean(image: np.ndarray, where: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian-weighted mean of image over the pixels of where, at every pixel."""
+    weight = cv2.GaussianBlur(where.astype(np.float32), (0, 0), sigma_px)
+    weighted = cv2.GaussianBlur(image * where[..., None], (0, 0), sigma_px)
+    return weighted / np.maximum(weight, 1e-6)[..., None]
 
 
 def nearest_pixels(mask: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -460,20 +472,32 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     farthest_nearby = cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST)
     # each band pixel's nearest clean background pixel, for the mirror and the depth behind
     nearest_clean = _nearest_with_distance(clean_back, band) if clean_back.any() else None
-    back_behind = mirrored_texture(colour, clean_back, band, smooth, farthest_nearby[band],
-                                   nearest_clean)
+    # The background's shading is continued flat from where it meets the band (its local
+    # level at each pixel's nearest clean pixel), its texture by the mirror: mirrored whole, a
+    # wall darkening towards a shoulder lightened again behind it, a crease along the old
+    # outline; and the wider box mean differed from the wall beside the band by a few levels.
+    level = _gaussian_mean(colour, clean_back, LEVEL_SIGMA_PX * scale)
+    level_here = (level[nearest_clean[0], nearest_clean[1]] if nearest_clean is not None
+                  else back_here)
+    level_here = np.where(background_here[:, None], level_here, back_here)
+    # ... smoothed along the band: nearest clean pixels jump along a border's stairs, and the
+    # level carried from each made blocks
+    level_band = np.zeros_like(colour)
+    level_band[band] = level_here
+    level_here = _gaussian_mean(level_band, band, LEVEL_SIGMA_PX * scale)[band]
+    detail = mirrored_texture(colour - level, clean_back, band, smooth,
+                              farthest_nearby[band], nearest_clean)
     # ... less what lies further along the line to the object's colour than the texture's
     # own spread: a trace of the object (the blurred tail of a wire) in the clean background
     # would be copied behind it as a ghost. The same is taken off the other way, or the
     # texture behind comes out paler than the texture it continues (dark grass dropped).
-    deviation = back_behind - back_here
-    towards = np.sum(deviation * contrast, axis=-1) / np.maximum(spread, 1e-6)
+    towards = np.sum(detail * contrast, axis=-1) / np.maximum(spread, 1e-6)
     excess = towards - np.clip(towards, -texture_share, texture_share)
-    back_behind = back_here + deviation - excess[:, None] * contrast
+    back_behind = level_here + detail - excess[:, None] * contrast
     textured = background_here & (spread_here > MIRROR_SPREAD_MIN)
     back_behind = np.where(textured[:, None],
-                           _held_to(back_behind, np.clip(back_here, 0, 255), texture[:, None]),
-                           back_here)
+                           _held_to(back_behind, np.clip(level_here, 0, 255), texture[:, None]),
+                           level_here)
     first = np.round(np.clip(np.where(mostly_front, back_behind, front_here), 0, 255))
     share = np.where(mostly_front, 1 - a, a)  # the larger share's side, and its share
     second = _remainder(pixel, first, share)
@@ -486,7 +510,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # texture mirrored from beside the object instead of the clean mean, a pixel wholly the
     # background's strayed wherever the mirror was not the photo, and the start frame lost
     # structure at edges: a railing's bar beside a man on a ladder, photo 22.)
-    back_clean = np.clip(back_here, 0, 255)
+    back_clean = np.clip(level_here, 0, 255)
     # the allowance grows with the square of the distance: an object's soft tail fades fast
     from_edge = np.clip(outside_px[band][:, None] / band_px, 0.0, 1.0) ** 2
     tolerance = EDGE_SLACK + (texture[:, None] - EDGE_SLACK) * from_edge
