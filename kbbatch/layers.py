@@ -476,15 +476,24 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     # level at each pixel's nearest clean pixel), its texture by the mirror: mirrored whole, a
     # wall darkening towards a shoulder lightened again behind it, a crease along the old
     # outline; and the wider box mean differed from the wall beside the band by a few levels.
-    level = _gaussian_mean(colour, clean_back, LEVEL_SIGMA_PX * scale)
-    level_here = (level[nearest_clean[0], nearest_clean[1]] if nearest_clean is not None
-                  else back_here)
+    # (A level varies slowly: it is read at the working size, four times fewer pixels.)
+    small_size = (depth.shape[1], depth.shape[0])
+    small_clean = back_source > 0.5
+    small_level = _gaussian_mean(cv2.resize(colour, small_size, interpolation=cv2.INTER_AREA),
+                                 small_clean, LEVEL_SIGMA_PX)
+    level = cv2.resize(small_level, size, interpolation=cv2.INTER_LINEAR)
+    if small_clean.any():
+        # carried to each band pixel from its nearest clean pixel, then smoothed along the
+        # band: nearest clean pixels jump along a border's stairs, and carried alone the
+        # level made blocks
+        rows, cols, _ = _nearest_with_distance(small_clean, small_band)
+        carried = np.zeros_like(small_level)
+        carried[small_band] = small_level[rows, cols]
+        carried = _gaussian_mean(carried, small_band, LEVEL_SIGMA_PX)
+        level_here = cv2.resize(carried, size, interpolation=cv2.INTER_LINEAR)[band]
+    else:
+        level_here = back_here
     level_here = np.where(background_here[:, None], level_here, back_here)
-    # ... smoothed along the band: nearest clean pixels jump along a border's stairs, and the
-    # level carried from each made blocks
-    level_band = np.zeros_like(colour)
-    level_band[band] = level_here
-    level_here = _gaussian_mean(level_band, band, LEVEL_SIGMA_PX * scale)[band]
     detail = mirrored_texture(colour - level, clean_back, band, smooth,
                               farthest_nearby[band], nearest_clean)
     # ... less what lies further along the line to the object's colour than the texture's
