@@ -70,6 +70,13 @@ the person mask is also DeepLab's class, whose outline at 257 px runs well off t
 and kept there it gave Obama's card a wedge of window above the shoulder beside the neck
 (photo 02), which the move tore from the curtain beside it as a ragged notch."""
 
+SKIRT_PX = 8
+"""A person's card keeps no piece beyond ISNet's outline (within JAW_SALIENT_SLACK_PX) that is
+nowhere twice this thick (working px): such a skirt is DeepLab's outline, drawn at 257 px, that
+the graph cut did not take back (a wedge of window above Obama's shoulder, photo 02, which the
+move carried along, tearing a ragged bite into the curtain beside it). Thicker pieces are
+kept: a limb ISNet missed."""
+
 HEAD_SEARCH_FRACTION = 0.5
 """The neck is looked for in the top half of a person box."""
 
@@ -277,6 +284,15 @@ def jaw_region(mask: np.ndarray, box: tuple[float, float, float, float]) -> np.n
     return _box_mask(mask.shape, (max(0.0, columns.min() - margin),
                                   y0 + JAW_FROM_FRACTION * (bottom - y0),
                                   columns.max() + 1 + margin, bottom))
+
+
+def thin_skirt(mask: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """What lies of mask outside outline and in no disc of radius SKIRT_PX within it (an
+    opening): a skirt running along the outline, not a limb beyond it. (Whole connected
+    pieces could not be judged: the skirt runs round the person, thick somewhere.)"""
+    beyond = (mask & ~outline).astype(np.uint8)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SKIRT_PX + 1,) * 2)
+    return (beyond > 0) & (cv2.morphologyEx(beyond, cv2.MORPH_OPEN, kernel) == 0)
 
 
 def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -565,6 +581,8 @@ def find_instances(image: np.ndarray,
         if detection.class_name == "person":  # nor is a jaw's retouched rim: it is kept
             jaw = jaw_region(mask, detection.box)
             snapped = np.where(jaw, mask if salient is None else mask & near_salient, snapped)
+            if salient is not None:
+                snapped = snapped & ~thin_skirt(snapped, near_salient)
         mask = clean_mask(snapped, keep=head)
         # the face is its main pieces (a stray pixel of it is no face to keep whole)
         face = drop_fragments(mask & head, min_px=0) if head is not None else None

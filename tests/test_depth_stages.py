@@ -265,7 +265,10 @@ def test_a_persons_card_keeps_no_background_beside_the_neck(monkeypatch, photo_n
     Biden's neck (03) went with their cards, and the move tore them from the background
     beside them (a ragged notch where window met curtain; a gold slab smeared over the drape).
     Pixels of the upper half of each person's card more than 3 px outside ISNet's outline:
-    4740 in 02, 1998 and 4180 in 03 before; 760, 0 and 0 now."""
+    4740 in 02, 1998 and 4180 in 03 before; 760, 0 and 0 with ISNet's outline at the jaw. The
+    760 were a wedge over the window above Obama's shoulder that the graph cut kept, and the
+    move tore a ragged bite into the curtain beside it: a skirt beyond ISNet's outline that is
+    nowhere 16 px thick is now dropped everywhere (0, 0 and 0)."""
     import cv2
 
     from kbbatch import segment
@@ -280,5 +283,5 @@ def test_a_persons_card_keeps_no_background_beside_the_neck(monkeypatch, photo_n
         top, bottom = person.box[1], person.box[3]
         upper = np.zeros(salient.shape, bool)
         upper[:int(top + 0.5 * (bottom - top))] = True
-        assert (person.mask & upper & ~near_salient).sum() <= 1000
+        assert (person.mask & upper & ~near_salient).sum() <= 100
         assert (person.face & salient).sum() > 0.9 * person.face.sum(), "the face stays whole"
