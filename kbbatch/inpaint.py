@@ -718,12 +718,12 @@ def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
     return np.where(edges, snapped, depth).astype(np.float32)
 
 
-def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray
-                  ) -> PointCloud:
+def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray,
+                  enlargement: float = 1.0) -> PointCloud:
     """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
     edges; within their band a far opaque point with the background's colour and a near point
     with the object's colour and its alpha matte."""
-    layers = split_layers(photo, depth)
+    layers = split_layers(photo, depth, enlargement)
     alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
     whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
     return (
@@ -742,19 +742,22 @@ def build_extended_cloud(
     plan: Plan,
     scene: SceneGeometry,
     inpainter: ColourInpainter | None = None,
+    enlargement: float = 1.0,
 ) -> Extension:
     """The photo as a point cloud in soft layers, extended at the extreme views.
 
     photo is RGB at the cloud density (any size of the working aspect); depth is at the
     working size. At the start view (when it is not the photo's own) and at the overshot end
     view, the disocclusions are filled with background and appended to the cloud.
+    enlargement: working pixels per pixel of the source photo, when smaller (split_layers).
     """
     cloud_scale = photo.shape[1] / scene.width_px
     cloud_height = round(scene.height_px * cloud_scale)
     if photo.shape[0] != cloud_height:  # a rounding apart: conform, views are sized this way
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
-    cloud = layered_cloud(photo, depth, photo_view, source_window(scene, plan, cloud_scale))
+    cloud = layered_cloud(photo, depth, photo_view, source_window(scene, plan, cloud_scale),
+                          enlargement)
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)

@@ -95,6 +95,11 @@ LEVEL_SIGMA_PX = 3.0
 texture) is read from clean pixels. A box's ripple left stripes' phase in the level, and a
 narrower reach carried a field's dark speck across the band as a streak (photo 33)."""
 
+ENLARGEMENT_MAX = 1.5
+"""A small photo's edges are counted in its own pixels up to this enlargement: at 2 (photo 01,
+512 px) the band reached a red stripe of the flag beside the astronaut's shoulder, and part of
+it went with her layer as a red tick."""
+
 CLEAN_ALPHA = 0.02
 """Alpha below this is pure background, above 1 minus this pure foreground."""
 
@@ -142,11 +147,12 @@ def upsample_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
     return (1.0 / disparity).astype(np.float32)
 
 
-def blurred_edge_tail(distance_px: np.ndarray) -> np.ndarray:
-    """Alpha of a step edge blurred by EDGE_BLUR_MAX_PX at this distance beyond it (negative:
-    inside)."""
-    table_px = np.linspace(-8.0 * EDGE_BLUR_MAX_PX, 8.0 * EDGE_BLUR_MAX_PX, 513)
-    tail = [0.5 * math.erfc(d / (math.sqrt(2.0) * EDGE_BLUR_MAX_PX)) for d in table_px]
+def blurred_edge_tail(distance_px: np.ndarray, blur_px: float = EDGE_BLUR_MAX_PX
+                      ) -> np.ndarray:
+    """Alpha of a step edge blurred by blur_px (a Gaussian's sigma) at this distance beyond
+    it (negative: inside)."""
+    table_px = np.linspace(-8.0 * blur_px, 8.0 * blur_px, 513)
+    tail = [0.5 * math.erfc(d / (math.sqrt(2.0) * blur_px)) for d in table_px]
     return np.interp(distance_px, table_px, tail).astype(np.float32)
 
 
@@ -335,7 +341,8 @@ def _window_around(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
             slice(max(0, cols[0] - margin), cols[-1] + margin + 1))
 
 
-def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
+def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
+                 ) -> SoftLayers:
     """The photo (RGB uint8 at the cloud's density) and its depth (working size) as soft layers.
 
     Near each depth edge, the clean colours of both sides are estimated from pixels well
@@ -346,10 +353,18 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     output size. The object's colour is then solved from the compositing equation, so the
     start view reproduces the photo, and the background's is the clean estimate, so no object
     colour stays behind.
+
+    enlargement: working pixels per pixel of the source photo, when it was smaller than the
+    working size. Its edges are blurred over that many more working pixels, so the band, the
+    matte's reach and the widest edge blur are counted in the photo's own pixels (up to
+    ENLARGEMENT_MAX): in working pixels, a small photo's soft edges (a cat's out-of-focus
+    cheek, 451 px wide) were cut hard.
     """
     height, width = photo.shape[:2]
     scale = width / depth.shape[1]
-    band_px = LAYER_BAND_PX
+    enlargement = min(max(1.0, enlargement), ENLARGEMENT_MAX)
+    band_px = round(LAYER_BAND_PX * enlargement)
+    blur_px = EDGE_BLUR_MAX_PX * enlargement
     window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
     nearest = cv2.erode(depth, window)
     farthest = cv2.dilate(depth, window)
@@ -376,7 +391,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     band = cv2.resize(small_band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     colour = photo.astype(np.float32)
     box = max(1, round(2 * band_px * scale))
-    matte_radius = max(1, round(MATTE_RADIUS_PX * scale))
+    matte_radius = max(1, round(MATTE_RADIUS_PX * enlargement * scale))
     # The local colour models and the guided filter are read at band pixels only: they are
     # computed on the band's box, with a margin as wide as their reach (exact there).
     win = _window_around(band, max(BACKGROUND_REACH_WIDER * box, 2 * matte_radius) + 2)
@@ -444,17 +459,18 @@ def split_layers(photo: np.ndarray, depth: np.ndarray) -> SoftLayers:
     texture_share = BACKGROUND_SPREAD * spread_here / np.sqrt(np.maximum(spread, 1e-6))
     beyond_edge = outside_px[band] > 0
     # ... except right at the edge, where a pixel is the two sides' mix
-    share_here = texture_share * np.clip(outside_px[band] / MIXED_EDGE_PX - 1.0, 0.0, 1.0)
+    mixed_px = MIXED_EDGE_PX * enlargement
+    share_here = texture_share * np.clip(outside_px[band] / mixed_px - 1.0, 0.0, 1.0)
     along = np.where(beyond_edge, (along - share_here) / np.maximum(1 - share_here, 0.1),
                      along)
     matte = trust * np.clip(along, 0.0, 1.0) + (1 - trust) * guided[here]
-    matte = np.minimum(matte, blurred_edge_tail(outside_px[band]))
+    matte = np.minimum(matte, blurred_edge_tail(outside_px[band], blur_px))
     # Inside it, likewise, an object can only be as transparent as a blurred edge displaced
     # by its widest blur (the depth edge may sit that far inside): the light grain of a
     # wooden post was taken for half transparency, and the field behind it showed through.
     inside_px = cv2.resize(within, size, interpolation=cv2.INTER_LINEAR)[band]
     matte = np.maximum(matte, np.where(inside_px > 0,
-                                       blurred_edge_tail(EDGE_BLUR_MAX_PX - inside_px), 0.0))
+                                       blurred_edge_tail(blur_px - inside_px, blur_px), 0.0))
     matte = np.clip(matte, 0.0, 1.0)
     matte[matte < CLEAN_ALPHA] = 0.0
     matte[matte > 1.0 - CLEAN_ALPHA] = 1.0

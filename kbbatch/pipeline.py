@@ -202,7 +202,8 @@ def prepare_scene(
     # The height follows the rounded width, so the cloud keeps the scale the views assume.
     cloud_width = round(width * scale)
     photo_cloud = resize_to(photo, cloud_width, round(height * cloud_width / width))
-    extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter())
+    extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter(),
+                                     enlargement=width / photo.shape[1])
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
                          depth_result.disparity, risk, cloud_width / width)
