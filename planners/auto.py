@@ -7,6 +7,8 @@ from a move too small to see; ties break deterministically; a plan always comes 
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -30,6 +32,10 @@ from kbbatch.render import PointCloud, back_project, coverage, depth_edges
 
 SEARCH_LONG_SIDE_PX = 256
 """Candidates are rendered at this long side (a quarter of the working size)."""
+
+SEARCH_THREADS = os.cpu_count() or 1
+"""Candidates rendered at once: the splatting kernels release the GIL, and each candidate's
+view is independent of the others."""
 
 SALIENCY_WEIGHT = 0.05
 """Score per unit of distance (in crop widths) between the tight crop and the salient object."""
@@ -172,12 +178,15 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
     target = box_point(box, SALIENT_TARGET_HEIGHT) if box else None
     # Every candidate shares the wide crop, hence the output window.
     region = coarse.region(wide, tight)
-    candidates = []
+    searched = []
     for dx, dy in search_offsets(request.preset.max_shift_px):
         crop = zoomed(tight, 1.0, (float(tight.center_x_px + dx), float(tight.center_y_px + dy)))
-        if not crop.inside(width, height):
-            continue
-        disoccluded = coarse.disoccluded(wide, crop, region)
+        if crop.inside(width, height):
+            searched.append((crop, dx, dy))
+    with ThreadPoolExecutor(SEARCH_THREADS) as pool:
+        fractions = list(pool.map(lambda s: coarse.disoccluded(wide, s[0], region), searched))
+    candidates = []
+    for (crop, dx, dy), disoccluded in zip(searched, fractions, strict=True):
         score = disoccluded
         if target is not None:
             distance = np.hypot(crop.center_x_px - target[0], crop.center_y_px - target[1])

@@ -60,6 +60,22 @@ def test_auto_reveals_less_than_center_on_a_card_scene():
     assert plan_disocclusion(request, auto) < center_value
 
 
+
+def test_the_search_scores_the_same_in_parallel_threads(monkeypatch):
+    """Candidates are rendered in threads: each must score as it does alone (no buffer shared
+    between two candidates' renders)."""
+    from kbbatch.planners import auto as auto_module
+    from kbbatch.planners.auto import score_candidates
+
+    request = request_for(1024, 576, "slideshow", disparity=card_scene())
+    monkeypatch.setattr(auto_module, "SEARCH_THREADS", 1)
+    _, alone, _ = score_candidates(request)
+    monkeypatch.setattr(auto_module, "SEARCH_THREADS", 4)
+    _, threaded, _ = score_candidates(request)
+    assert len(alone) > 50
+    assert len({c.disoccluded for c in alone}) > 5, "the card must reveal more in some crops"
+    assert threaded == alone
+
 def test_a_wide_preset_on_a_tall_thin_photo_still_plans():
     plan = get_planner("auto").plan(request_for(200, 1024, "slideshow", max_shift_px=300))
     assert plan.end.inside(200, 1024) and plan.start.inside(200, 1024)
