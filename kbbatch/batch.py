@@ -141,7 +141,8 @@ def run_folder(
     output_folder = output_folder.absolute()
     scan = scan_folder(folder, ignore=(output_folder.name,)
                        if output_folder.parent == folder.absolute() else ())
-    missing = manifest.missing_images(folder) if manifest is not None else []
+    missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
+               if manifest is not None else [])
     if not scan.photos and not scan.broken_links and not missing:
         raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}); nothing was written")
     check_writable(output_folder)
@@ -154,8 +155,8 @@ def run_folder(
                                   f"symbolic link (its target {os.readlink(link)} is missing)"))
     for name in missing:
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
-                                  error=f"{manifest.path}: image {name!r}: no such photo "
-                                  f"in {folder}"))
+                                  error=f"{manifest.path}: image {name!r}: no photo of "
+                                  f"that file name in {folder} (keys are plain file names)"))
     stop: dict = {}
     try:
         remove_partial_clips(output_folder)

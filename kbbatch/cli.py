@@ -161,8 +161,8 @@ executor_options = _shared(
 @device_option
 @manifest_option
 @save_depth_option
-@click.option("--threads", type=int, default=ClipOptions().threads, show_default=True,
-              help="Frames rendered in parallel.")
+@click.option("--threads", type=click.IntRange(min=1), default=ClipOptions().threads,
+              show_default=True, help="Frames rendered in parallel.")
 @click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
 @click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
@@ -173,6 +173,7 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
     preset = _preset(shared)
     options = _clip_options(shared, threads=threads, save_depth=save_depth)
     output = output or folder / "kenburns"
+    _check_depth_beside_photos(save_depth, folder, output)
     manifest = _load_manifest(manifest_path)
     executor = _executor(shared)
     try:
@@ -193,6 +194,16 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(1 if report.failed else 0)
+
+
+def _check_depth_beside_photos(save_depth: bool, photos: Path, clips: Path) -> None:
+    """--save-depth writes `<clip>.disparity.png`, the name of a user's depth map: written
+    beside the photos, the next run would read the tool's own map as the user's."""
+    if save_depth and photos.resolve() == clips.resolve():
+        raise click.ClickException(
+            f"{clips}: --save-depth writes <name>.disparity.png beside each clip, which kbbatch "
+            "reads as the depth map of the photo of that name; write the clips to another "
+            "folder (-o/--out)")
 
 
 def _executor(options: dict) -> RayExecutor | None:
@@ -390,6 +401,7 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     preset = _preset(shared)
     options = _clip_options(shared, save_depth=save_depth)
+    _check_depth_beside_photos(save_depth, inbox, outbox)
     executor = _executor(shared)
     settings = WatchSettings(inbox, outbox, preset, options, _load_manifest(manifest_path),
                              jobs or default_jobs(), poll, settle_s, keep_sources, executor)

@@ -43,6 +43,10 @@ class ImageReadError(Exception):
         self.reason = reason
 
 
+DEPTH_PREVIEW_SUFFIX = ".depth-preview.png"
+"""The coloured depth picture `--save-depth` writes beside a clip: never a photo to render."""
+
+
 def is_image_file(path: Path) -> bool:
     """Whether a file looks like a photo we should process (hidden and depth maps excluded)."""
     name = path.name
@@ -51,6 +55,7 @@ def is_image_file(path: Path) -> bool:
         and not name.startswith(".")
         and ".depth." not in name.lower()
         and ".disparity." not in name.lower()
+        and DEPTH_PREVIEW_SUFFIX not in name.lower()
     )
 
 
@@ -140,12 +145,26 @@ def _to_rgb8(image: Image.Image) -> np.ndarray:
     return np.asarray(image.convert("RGB")).copy()
 
 
+TEMP_STEM_MAX_BYTES = 100
+"""A temporary file is named after its final name's stem up to this many bytes; a longer stem,
+or one that is not UTF-8 (ffmpeg-python and OpenCV take only UTF-8 names), gives a generic
+name: a valid 240-byte name failed as its temporary one passed the 255-byte limit."""
+
+
+def _temp_prefix(stem: str) -> str:
+    try:
+        size = len(stem.encode("utf-8"))
+    except UnicodeEncodeError:
+        return ".kbbatch."
+    return f".{stem}." if size <= TEMP_STEM_MAX_BYTES else ".kbbatch."
+
+
 @contextmanager
 def atomic_output(final_path: Path, suffix: str):
     """A temporary path beside final_path, renamed onto it only if the block succeeds."""
     final_path.parent.mkdir(parents=True, exist_ok=True)
     handle, temp_name = tempfile.mkstemp(
-        prefix=f".{final_path.stem}.", suffix=f".part{suffix}", dir=final_path.parent
+        prefix=_temp_prefix(final_path.stem), suffix=f".part{suffix}", dir=final_path.parent
     )
     os.close(handle)
     temp_path = Path(temp_name)

@@ -8,10 +8,12 @@ name is never given to a second, different photo. Jobs are keyed by the photo's 
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from urllib.parse import quote_from_bytes, unquote_to_bytes
 
 JOURNAL_NAME = ".kbbatch-journal.sqlite"
 STATES = ("queued", "running", "done", "failed")
@@ -22,6 +24,37 @@ COLUMNS = (("source", "TEXT PRIMARY KEY"), ("fingerprint", "TEXT NOT NULL"),
            ("settings", "TEXT NOT NULL"), ("state", "TEXT NOT NULL"), ("output", "TEXT"),
            ("error", "TEXT"), ("attempts", "INTEGER NOT NULL DEFAULT 0"), ("seconds", "REAL"),
            ("updated", "REAL NOT NULL"), ("content", "TEXT"), ("clip", "TEXT"))
+
+
+UNDECODABLE_PREFIX = "//bytes:"
+"""Marks a stored path or clip name whose bytes are not UTF-8 (a Latin-1 name from a zip file):
+SQLite keeps only UTF-8 text, so such a name is stored percent-encoded after this prefix, which
+no resolved absolute path and no file name can begin with."""
+
+
+def _stored(name: str | Path | None) -> str | None:
+    """A path or file name as the journal keeps it (reversibly, see UNDECODABLE_PREFIX)."""
+    if name is None:
+        return None
+    text = str(name)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return UNDECODABLE_PREFIX + quote_from_bytes(os.fsencode(text), safe="/")
+    return text
+
+
+def _restored(stored: str | None) -> str | None:
+    if stored is None or not stored.startswith(UNDECODABLE_PREFIX):
+        return stored
+    return os.fsdecode(unquote_to_bytes(stored[len(UNDECODABLE_PREFIX):]))
+
+
+def _message(text: str | None) -> str | None:
+    """An error message as UTF-8 text: undecodable bytes of a name shown as escapes."""
+    if text is None:
+        return None
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 class JournalError(OSError):
@@ -100,11 +133,12 @@ class Journal:
     def _select(self, where: str = "", args: tuple = ()) -> list[Job]:
         names = ", ".join(n for n, _ in COLUMNS)
         rows = self.connection.execute(f"SELECT {names} FROM jobs {where} ORDER BY source", args)
-        return [Job(*row) for row in rows]
+        return [replace(job, source=_restored(job.source), output=_restored(job.output))
+                for job in (Job(*row) for row in rows)]
 
     @_guarded
     def get(self, source: Path) -> Job | None:
-        jobs = self._select("WHERE source = ?", (str(source),))
+        jobs = self._select("WHERE source = ?", (_stored(source),))
         return jobs[0] if jobs else None
 
     @_guarded
@@ -120,7 +154,8 @@ class Journal:
             "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output, error,"
             " attempts, seconds, updated, content, clip)"
             " VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?, ?, NULL)",
-            (str(source), fingerprint, settings, output, attempts + 1, time.time(), content),
+            (_stored(source), fingerprint, settings, _stored(output), attempts + 1, time.time(),
+             content),
         )
 
     @_guarded
@@ -128,20 +163,22 @@ class Journal:
                clip: str | None = None) -> None:
         self.connection.execute(
             "UPDATE jobs SET state = ?, seconds = ?, error = ?, clip = ?, updated = ?"
-            " WHERE source = ?", (state, seconds, error, clip, time.time(), str(source)))
+            " WHERE source = ?",
+            (state, seconds, _message(error), clip, time.time(), _stored(source)))
 
     @_guarded
     def moved(self, source: Path, destination: Path) -> None:
         """The photo now lies at destination (done/ or failed/); its clip stays its own."""
         with self.connection:
-            self.connection.execute("DELETE FROM jobs WHERE source = ?", (str(destination),))
+            self.connection.execute("DELETE FROM jobs WHERE source = ?",
+                                    (_stored(destination),))
             self.connection.execute("UPDATE jobs SET source = ? WHERE source = ?",
-                                    (str(destination), str(source)))
+                                    (_stored(destination), _stored(source)))
 
     @_guarded
     def owners(self, output: str) -> list[Job]:
         """Jobs whose clip has this file name."""
-        return self._select("WHERE output = ?", (output,))
+        return self._select("WHERE output = ?", (_stored(output),))
 
     @_guarded
     def counts(self) -> dict[str, int]:

@@ -85,8 +85,10 @@ class Manifest:
     def entry(self, image_name: str) -> ManifestEntry | None:
         return self.entries.get(image_name)
 
-    def missing_images(self, folder: Path) -> list[str]:
-        return sorted(name for name in self.entries if not (folder / name).is_file())
+    def unmatched_images(self, photo_names: set[str]) -> list[str]:
+        """Keys that name none of the folder's photos (entries apply by plain file name: a
+        key with a folder, or naming a file that is not a photo, would be silently unused)."""
+        return sorted(name for name in self.entries if name not in photo_names)
 
 
 def schema() -> dict[str, Any]:
@@ -96,7 +98,11 @@ def schema() -> dict[str, Any]:
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
     try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
+        # utf-8-sig: a byte-order mark (Notepad writes one) is not an error
+        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
+    except UnicodeDecodeError as error:
+        raise ManifestError(f"{path}: is not UTF-8 text (byte {error.start}); save it as "
+                            "UTF-8") from error
     except OSError as error:
         raise ManifestError(f"{path}: cannot be read ({error.strerror})") from error
     except json.JSONDecodeError as error:

@@ -482,13 +482,13 @@ def prefetched(items: Iterator, ahead: int) -> Iterator:
 
 def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
-    from kbbatch.images import write_image
+    from kbbatch.images import DEPTH_PREVIEW_SUFFIX, write_image
     from kbbatch.review import depth_picture, normalised_disparity
 
     stem = clip_path.with_suffix("")
     write_image(stem.with_name(stem.name + ".disparity.png"),
                 (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
-    write_image(stem.with_name(stem.name + ".depth-preview.png"), depth_picture(disparity))
+    write_image(stem.with_name(stem.name + DEPTH_PREVIEW_SUFFIX), depth_picture(disparity))
 
 
 def plan_summary(plan: Plan) -> dict:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -9,8 +10,13 @@ from PIL import Image
 
 from .conftest import textured_image
 
+LATIN1_NAME = os.fsdecode(b"caf\xe9 latin-1.jpg")
+"""A name whose bytes are not UTF-8 (from a Latin-1 zip file): Python holds it with surrogates,
+which SQLite, ffmpeg-python and OpenCV refuse."""
+LONG_NAME = "L" * 240 + ".jpg"
+"""A valid 244-byte name: its temporary clip's name, and its depth map's, would pass 255."""
 GOOD = ("grey.png", "alpha.png", "sixteen.png", "cmyk.jpg", "rotated.jpg", "name with spaces é.jpg",
-        "twin.jpg", "twin.png")
+        "twin.jpg", "twin.png", LATIN1_NAME, LONG_NAME)
 BAD = ("empty.jpg", "truncated.jpg", "text.jpg")
 
 
@@ -27,6 +33,8 @@ def write_corpus(folder: Path) -> None:
     Image.fromarray(base).save(folder / "rotated.jpg", exif=exif.tobytes())
     Image.fromarray(base).save(folder / "name with spaces é.jpg")
     Image.fromarray(base).save(folder / "twin.jpg")
+    for name in (LATIN1_NAME, LONG_NAME):
+        Image.fromarray(base[:, ::-1]).save(folder / name, format="JPEG")
     Image.fromarray(base[::-1]).save(folder / "twin.png")
     (folder / "empty.jpg").write_bytes(b"")
     full = (folder / "twin.jpg").read_bytes()

@@ -5,6 +5,7 @@ import shutil
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from kbbatch import paper
 from kbbatch.batch import plan_folder, run_folder
@@ -141,6 +142,37 @@ def test_crops_with_a_planner_are_refused_except_2d_which_drops_parallax(tmp_pat
     assert not reread.entry("a.jpg").plan(1024, 576, 1024, 16 / 9, "linear").parallax
 
 
+def test_keys_naming_no_photo_of_the_folder_are_reported_not_ignored(tmp_path, quick_preset):
+    """Entries apply by plain file name: a key with a folder, or naming a file that is no
+    photo, would otherwise be dropped in silence (the photo rendered with defaults)."""
+    folder = tmp_path / "in"
+    (folder / "sub").mkdir(parents=True)
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    Image.fromarray(textured_image(180, 320)).save(folder / "sub" / "x.jpg")
+    (folder / "notes.txt").write_text("hi")
+    manifest = tmp_path / "m.json"
+    keys = ["./a.jpg", "sub/x.jpg", "notes.txt", "a.jpg"]
+    manifest.write_text(json.dumps({"version": 1, "images": {k: {"planner": "2d"} for k in keys}}))
+    options = ClipOptions(planner="center", threads=2)
+    report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
+                        manifest=load_manifest(manifest))
+    assert [r.status for r in report.results if r.status == "done"] == ["done"]
+    errors = sorted(r.error for r in report.failed)
+    assert len(errors) == 3
+    for key in keys[:3]:
+        assert any(f"image {key!r}: no photo of that file name" in e and "m.json" in e
+                   for e in errors), (key, errors)
+
+
+def test_a_manifest_that_is_not_utf8_is_a_clear_error_and_a_bom_is_fine(tmp_path):
+    document = '{"version": 1, "images": {"a.jpg": {"planner": "2d"}}}'
+    (tmp_path / "u16.json").write_bytes(document.encode("utf-16"))
+    with pytest.raises(ManifestError, match=r"u16.json: is not UTF-8 text"):
+        load_manifest(tmp_path / "u16.json")
+    (tmp_path / "bom.json").write_bytes(document.encode("utf-8-sig"))
+    assert load_manifest(tmp_path / "bom.json").entry("a.jpg") is not None
+
+
 def test_crop_outside_the_photo_is_refused(tmp_path):
     path = write(tmp_path / "m.json", {"images": {"a.jpg": {
         "units": "px", "start": {"center_x": 100, "center_y": 100, "width": 400},
@@ -171,7 +203,7 @@ def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
                         manifest=load_manifest(manifest_path))
     done = [r for r in report.results if r.status == "done"]
     [missing] = report.failed
-    assert "missing.jpg" in missing.error and "no such photo" in missing.error
+    assert "missing.jpg" in missing.error and "no photo of that file name" in missing.error
     [result] = done
     assert result.plan["planner"] == "manifest"
     from kbbatch.images import read_image

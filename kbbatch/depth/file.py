@@ -29,8 +29,11 @@ def find_depth_file(photo_path: Path) -> Path | None:
     for kind in DEPTH_FILE_KINDS:
         for suffix in DEPTH_FILE_SUFFIXES:
             candidate = photo_path.with_name(f"{photo_path.stem}.{kind}{suffix}")
-            if candidate.is_file():
-                return candidate
+            try:
+                if candidate.is_file():
+                    return candidate
+            except OSError:  # a name too long for the file system: no such map can exist
+                continue
     return None
 
 
