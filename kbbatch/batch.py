@@ -256,7 +256,9 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         result.note = clip_name_note(job.source, job.preferred, job.output.name)
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None
-        journal.finish(job.source, result.status, result.seconds, result.error, clip)
+        # an interrupted clip is queued again, as one whose run was stopped
+        state = "queued" if result.status == "interrupted" else result.status
+        journal.finish(job.source, state, result.seconds, result.error, clip)
     except (JournalError, OSError) as error:
         return ClipResult(str(job.source), None, "failed", 0.0, error=f"{job.source}: {error}")
     return result

@@ -313,6 +313,10 @@ def _print_summary(report: RunReport) -> None:
                f"up to date, {len(report.failed)} failed, preset {report.preset}")
     if excluded:
         click.echo(f"{len(excluded)} photo(s) excluded by the manifest")
+    interrupted = [r for r in report.results if r.status == "interrupted"]
+    if interrupted:
+        click.echo(f"{len(interrupted)} clip(s) interrupted (their encoder was stopped); run "
+                   "again to finish", err=True)
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")

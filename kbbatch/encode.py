@@ -9,6 +9,7 @@ import functools
 import os
 import re
 import shutil
+import signal
 import subprocess
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -18,6 +19,15 @@ import ffmpeg
 import numpy as np
 
 from kbbatch.presets import Preset
+
+FFMPEG_SIGNALLED_STATUS = 255
+"""ffmpeg's exit status after it caught SIGTERM or SIGINT and stopped (its errors exit with 1
+and say why on stderr; a signal leaves stderr empty at -loglevel error)."""
+
+
+class EncoderStoppedError(RuntimeError):
+    """ffmpeg was ended by a signal from outside (a service manager stopping every process of
+    the service): an interruption, not a failure of the photo."""
 
 
 class EncodeError(RuntimeError):
@@ -150,8 +160,11 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
 
 def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> int:
     """Write frames (H, W, 3 uint8 RGB) to path with the preset's encoder; returns the count."""
+    # Its own session: a stop signal sent to the whole process group (a shell, a supervisor)
+    # is the runner's to act on; the runner then finishes or ends the clip itself.
     process = subprocess.Popen(
-        encoder_command(path, preset), stdin=subprocess.PIPE, stderr=subprocess.PIPE
+        encoder_command(path, preset), stdin=subprocess.PIPE, stderr=subprocess.PIPE,
+        start_new_session=True,
     )
     count = 0
     try:
@@ -170,7 +183,12 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
         process.wait()
         raise
     stderr = process.stderr.read().decode(errors="replace")
-    if process.wait() != 0:
+    status = process.wait()
+    if status < 0 or (status == FFMPEG_SIGNALLED_STATUS and not stderr.strip()):
+        cause = signal.Signals(-status).name if status < 0 else "a signal"
+        raise EncoderStoppedError(f"ffmpeg was stopped by {cause} while writing {path}; the "
+                                  "photo is not at fault and is taken again")
+    if status != 0:
         raise EncodeError(f"ffmpeg failed writing {path}: {stderr.strip()[-800:]}")
     return count
 

@@ -42,7 +42,7 @@ from kbbatch.camera import working_size as compute_working_size
 from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DeviceError, frames_device
-from kbbatch.encode import encode_frames, palindrome_order
+from kbbatch.encode import EncoderStoppedError, encode_frames, palindrome_order
 from kbbatch.images import ImageReadError, atomic_output, read_image
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import ManifestEntry, ManifestError
@@ -105,7 +105,7 @@ class ClipOptions:
 class ClipResult:
     source: str
     output: str | None
-    status: str  # "done" or "failed"
+    status: str  # "done", "failed", or "interrupted" (its encoder was stopped: taken again)
     seconds: float
     error: str | None = None
     depth_backend: str | None = None
@@ -561,6 +561,9 @@ def make_clip(
         result.status = "done"
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
             DeviceError) as error:
+        result.error = str(error)
+    except EncoderStoppedError as error:  # a stop signal reached ffmpeg: the photo is taken again
+        result.status = "interrupted"
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
         result.error = f"{source}: {type(error).__name__}: {error}"

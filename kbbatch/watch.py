@@ -354,6 +354,12 @@ class JobRunner:
                 self.requeue(job.path, False)
                 continue
             self.worker_deaths.pop(job.path, None)
+            if result.status == "interrupted":  # ffmpeg stopped from outside: not the photo's
+                self.journal.finish(job.path, "queued", result.seconds, result.error)
+                del self.in_flight[future]
+                log.warning("%s: %s", job.path.name, result.error)
+                self.requeue(job.path, job.renamed)
+                continue
             clip = None
             if result.status == "done":
                 with contextlib.suppress(OSError):

@@ -1,5 +1,7 @@
 import os
+import signal
 import subprocess
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -8,6 +10,7 @@ import pytest
 
 from kbbatch.encode import (
     EncodeError,
+    EncoderStoppedError,
     check_encoder,
     decode_frames,
     encode_frames,
@@ -68,6 +71,45 @@ def test_wrong_frame_size_is_refused(tmp_path):
     preset = with_overrides(load_preset("preview"), duration_s=0.4, fps=10.0)
     with pytest.raises(EncodeError, match=r"frame 0 has shape \(10, 10, 3\) uint8, expected"):
         encode_frames(tmp_path / "x.mp4", [np.zeros((10, 10, 3), np.uint8)], preset)
+
+
+def encoder_pids(path_part: str) -> list[int]:
+    """Processes whose command line names path_part (the encoder writing a clip)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and entry.name != str(os.getpid()):
+            try:
+                if path_part.encode() in (entry / "cmdline").read_bytes():
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
+
+
+@pytest.mark.parametrize("sent", [signal.SIGTERM, signal.SIGKILL])
+def test_an_encoder_stopped_by_a_signal_is_an_interruption_not_a_failure(tmp_path, sent):
+    """A service manager stops every process of a service: ffmpeg's end is then no fault of the
+    photo (it went to failed/ and was never retried)."""
+    preset = with_overrides(load_preset("preview"), duration_s=2.0, fps=10.0)
+    frame = np.full((preset.height_px, preset.width_px, 3), 90, np.uint8)
+
+    def frames():
+        for index in range(preset.frames_total):
+            if index == 3:
+                [pid] = encoder_pids(str(tmp_path / "x.mp4"))
+                os.kill(pid, sent)
+                time.sleep(0.5)
+            yield frame
+
+    with pytest.raises(EncoderStoppedError, match="stopped by"):
+        encode_frames(tmp_path / "x.mp4", frames(), preset)
+
+
+def test_an_encoder_that_fails_on_its_own_is_still_a_failure(tmp_path):
+    preset = with_overrides(load_preset("preview"), duration_s=0.4, fps=10.0)
+    frame = np.zeros((preset.height_px, preset.width_px, 3), np.uint8)
+    with pytest.raises(EncodeError, match="ffmpeg failed writing"):
+        encode_frames(tmp_path / "no-such-folder" / "x.mp4", [frame] * 4, preset)
 
 
 def test_frames_beyond_the_memory_budget_go_through_a_scratch_file_that_is_removed(

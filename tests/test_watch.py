@@ -177,3 +177,46 @@ def test_sigterm_exits_zero_and_slow_writes_wait_until_complete(tmp_path):
         assert (outbox / "slow.mp4").is_file()
     finally:
         assert stop(daemon) == 0
+
+
+def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed(tmp_path):
+    """systemd's default stop sends SIGTERM to every process of the service, ffmpeg included:
+    the photo in progress went to failed/ and was never retried. It stays in the inbox, queued,
+    and the next start makes its clip."""
+    from .test_encode import encoder_pids
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 12.0, fps=25.0)
+    [photo] = shared_photos(1)
+    shutil.copy(photo, inbox / "a.jpg")
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        encoders: list[int] = []
+
+        def encoding() -> bool:
+            encoders[:] = encoder_pids(str(outbox / ".a."))
+            return bool(encoders)
+
+        wait_for(encoding, 120, "the encoder of a.jpg's clip")
+        daemon.send_signal(signal.SIGTERM)
+        for pid in encoders:
+            os.kill(pid, signal.SIGTERM)
+        assert daemon.wait(timeout=60) == 0
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+    assert (inbox / "a.jpg").is_file() and not (inbox / "failed").exists()
+    journal = Journal(outbox)
+    job = journal.get(inbox / "a.jpg")
+    journal.close()
+    assert job.state == "queued" and "stopped by" in job.error
+    assert clips_in(outbox) == []
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: finished_jobs(outbox) == 1, 180, "a.jpg's clip after the restart")
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4"]
+    assert (inbox / "done" / "a.jpg").is_file()
