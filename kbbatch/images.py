@@ -90,6 +90,21 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     return FolderScan(photos, broken, subfolders)
 
 
+TRUNCATED_JPEG_ROWS = 16
+"""A JPEG whose data ends early still decodes (libjpeg only warns, and Pillow does not say):
+its missing blocks come out the exact mid grey, to the bottom of the image. So many exactly
+grey bottom rows (one or two rows of blocks) mark it; a photo has noise there."""
+
+_MISSING_BLOCK_LEVEL = 128  # a block with no coefficients: mid grey, every channel
+
+
+def _ends_blank(image: Image.Image) -> bool:
+    if image.mode not in ("RGB", "L") or image.height < TRUNCATED_JPEG_ROWS:
+        return False
+    tail = image.crop((0, image.height - TRUNCATED_JPEG_ROWS, image.width, image.height))
+    return bool(np.all(np.asarray(tail) == _MISSING_BLOCK_LEVEL))
+
+
 def unreadable_reason(error: OSError) -> str:
     """Why a file could not be opened, in words (a permission problem is not corruption)."""
     if isinstance(error, PermissionError):
@@ -118,6 +133,9 @@ def read_image(path: Path) -> np.ndarray:
                     )
                 image.draft("RGB", (DECODE_LONG_SIDE_PX, DECODE_LONG_SIDE_PX))
             image.load()
+            if image.format == "JPEG" and _ends_blank(image):
+                raise ImageReadError(path, "is corrupt or truncated (its image data ends early: "
+                                     f"the last {TRUNCATED_JPEG_ROWS} rows or more are blank)")
             image = ImageOps.exif_transpose(image)
             return _to_rgb8(image)
     except ImageReadError:

@@ -17,7 +17,7 @@ LONG_NAME = "L" * 240 + ".jpg"
 """A valid 244-byte name: its temporary clip's name, and its depth map's, would pass 255."""
 GOOD = ("grey.png", "alpha.png", "sixteen.png", "cmyk.jpg", "rotated.jpg", "name with spaces é.jpg",
         "twin.jpg", "twin.png", LATIN1_NAME, LONG_NAME)
-BAD = ("empty.jpg", "truncated.jpg", "text.jpg")
+BAD = ("empty.jpg", "truncated.jpg", "cut_short.jpg", "text.jpg")
 
 
 def write_corpus(folder: Path) -> None:
@@ -39,4 +39,6 @@ def write_corpus(folder: Path) -> None:
     (folder / "empty.jpg").write_bytes(b"")
     full = (folder / "twin.jpg").read_bytes()
     (folder / "truncated.jpg").write_bytes(full[: len(full) // 2])
+    # cut short, but ending as a JPEG ends: it decodes, its lower part blank grey
+    (folder / "cut_short.jpg").write_bytes(full[: len(full) // 2] + b"\xff\xd9")
     (folder / "text.jpg").write_text("this is a text file with a .jpg name")
