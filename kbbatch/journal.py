@@ -176,6 +176,11 @@ class Journal:
                                     (_stored(destination), _stored(source)))
 
     @_guarded
+    def forget(self, source: Path) -> None:
+        """The photo is gone (deleted by its owner before its clip was made)."""
+        self.connection.execute("DELETE FROM jobs WHERE source = ?", (_stored(source),))
+
+    @_guarded
     def owners(self, output: str) -> list[Job]:
         """Jobs whose clip has this file name."""
         return self._select("WHERE output = ?", (_stored(output),))

@@ -360,6 +360,13 @@ class JobRunner:
                 log.warning("%s: %s", job.path.name, result.error)
                 self.requeue(job.path, job.renamed)
                 continue
+            if result.status == "failed" and not job.path.exists():
+                # deleted from the inbox while it was processed: the user's choice, no failure
+                self.journal.forget(job.path)
+                del self.in_flight[future]
+                log.info("%s was removed from the inbox while it was processed; skipped",
+                         job.path.name)
+                continue
             clip = None
             if result.status == "done":
                 with contextlib.suppress(OSError):

@@ -273,3 +273,35 @@ def test_photos_in_flight_beside_a_dead_worker_are_not_blamed(tmp_path):
         assert stop(daemon) == 0
     assert clips_in(outbox) == ["a.mp4", "b.mp4"]
     assert not (inbox / "failed").exists(), "an innocent photo was filed as failed"
+
+
+def test_a_photo_deleted_while_it_is_read_is_skipped_not_filed_as_failed(tmp_path):
+    """Deleted from the inbox between being taken and being read, a photo failed with a raw
+    FileNotFoundError, left an error report and stayed FAILED in the status for good. (The
+    race cannot be timed in a real run: the worker's result is made here, and the runner,
+    journal and inbox are real.)"""
+    from concurrent.futures import Future
+
+    from kbbatch.pipeline import ClipOptions, ClipResult
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import InFlight, JobRunner, WatchSettings
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    photo = inbox / "gone.jpg"
+    settings = WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions())
+    journal = Journal(outbox)
+    requeued = []
+    runner = JobRunner(settings, journal, False, inbox / "failed",
+                       lambda path, renamed: requeued.append(path))
+    journal.start(photo, "1:1", "settings", "gone.mp4", "0" * 64)
+    future: Future = Future()
+    future.set_result(ClipResult(str(photo), None, "failed", 0.1,
+                                 error=f"{photo}: FileNotFoundError: no such file"))
+    runner.in_flight[future] = InFlight(photo, "1:1", "gone.mp4", "gone.mp4", True)
+    runner.finish_completed()
+    assert runner.in_flight == {} and requeued == []
+    assert journal.jobs() == [], "nothing to report about a photo its owner removed"
+    assert not (inbox / "failed").exists()
+    journal.close()
