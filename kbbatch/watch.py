@@ -76,6 +76,9 @@ def is_candidate(path: Path) -> bool:
     return is_image_file(path) and not name.endswith(TEMPORARY_SUFFIXES)
 
 
+GONE_MARK = " (removed from the inbox)"
+"""Added to the journal's record of a photo deleted while its clip was made."""
+
 REWRITE_GRACE_S = 10.0
 """A photo that fails while it was modified this recently (at least 5 settle times) is not filed
 away yet: a writer that paused longer than the settle time may still finish it."""
@@ -373,6 +376,11 @@ class JobRunner:
                     clip = source_fingerprint(self.settings.outbox / job.output)
             self.journal.finish(job.path, result.status, result.seconds, result.error, clip)
             del self.in_flight[future]
+            if result.status == "done" and not job.path.exists():
+                # Deleted while its frames rendered: its clip no longer belongs to the inbox
+                # path, or a different photo dropped there later would take the clip's name
+                # as its own re-render and replace it.
+                self.journal.moved(job.path, job.path.with_name(f"{job.path.name}{GONE_MARK}"))
             if result.status == "done":
                 self.move_source(job.path, DONE_FOLDER)
                 log.info("done %s in %.1f s -> %s", job.path.name, result.seconds,

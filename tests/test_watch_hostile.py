@@ -305,3 +305,33 @@ def test_a_photo_deleted_while_it_is_read_is_skipped_not_filed_as_failed(tmp_pat
     assert journal.jobs() == [], "nothing to report about a photo its owner removed"
     assert not (inbox / "failed").exists()
     journal.close()
+
+
+def test_a_clip_of_a_deleted_photo_is_not_replaced_by_a_new_photo_of_its_name(tmp_path):
+    """A photo deleted while its frames rendered still gets its clip; a different photo dropped
+    under the same name later replaced that clip, as if it were the first one re-rendered."""
+    from concurrent.futures import Future
+
+    from kbbatch.pipeline import ClipOptions, ClipResult
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import InFlight, JobRunner, WatchSettings
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    photo = inbox / "del.jpg"
+    settings = WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions())
+    journal = Journal(outbox)
+    runner = JobRunner(settings, journal, False, inbox / "failed", lambda *_: None)
+    journal.start(photo, "1:1", "settings", "del.mp4", "a" * 64)
+    (outbox / "del.mp4").write_bytes(b"the first photo's clip")
+    future: Future = Future()
+    future.set_result(ClipResult(str(photo), str(outbox / "del.mp4"), "done", 1.0))
+    runner.in_flight[future] = InFlight(photo, "1:1", "del.mp4", "del.mp4", True)
+    runner.finish_completed()
+    # a different photo arrives under the same name
+    name = journal.clip_name(photo, "b" * 64, "del.mp4", outbox)
+    assert name == "del.bbbbbbbb.mp4", name
+    [job] = journal.jobs("done")
+    assert job.output == "del.mp4" and "removed from the inbox" in job.source
+    journal.close()
