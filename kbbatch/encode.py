@@ -25,6 +25,11 @@ FFMPEG_SIGNALLED_STATUS = 255
 and say why on stderr; a signal leaves stderr empty at -loglevel error)."""
 
 
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+"""Signals that ask a process to stop (ffmpeg catches them and exits with
+FFMPEG_SIGNALLED_STATUS); any other signal that ends it is a failure."""
+
+
 class EncoderStoppedError(RuntimeError):
     """ffmpeg was ended by a signal from outside (a service manager stopping every process of
     the service): an interruption, not a failure of the photo."""
@@ -184,10 +189,14 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
         raise
     stderr = process.stderr.read().decode(errors="replace")
     status = process.wait()
-    if status < 0 or (status == FFMPEG_SIGNALLED_STATUS and not stderr.strip()):
-        cause = signal.Signals(-status).name if status < 0 else "a signal"
+    killer = signal.Signals(-status) if status < 0 else None
+    if killer in STOP_SIGNALS or (status == FFMPEG_SIGNALLED_STATUS and not stderr.strip()):
+        cause = killer.name if killer else "a signal"
         raise EncoderStoppedError(f"ffmpeg was stopped by {cause} while writing {path}; the "
                                   "photo is not at fault and is taken again")
+    if killer is not None:  # SIGXFSZ (a file-size limit), SIGKILL (out of memory): a failure
+        raise EncodeError(f"ffmpeg was killed by {killer.name} writing {path} "
+                          f"{stderr.strip()[-800:]}".rstrip())
     if status != 0:
         raise EncodeError(f"ffmpeg failed writing {path}: {stderr.strip()[-800:]}")
     return count

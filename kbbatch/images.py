@@ -93,7 +93,8 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
 TRUNCATED_JPEG_ROWS = 16
 """A JPEG whose data ends early still decodes (libjpeg only warns, and Pillow does not say):
 its missing blocks come out the exact mid grey, to the bottom of the image. So many exactly
-grey bottom rows (one or two rows of blocks) mark it; a photo has noise there."""
+grey bottom rows (one or two rows of blocks) below other content mark it; a photo has noise
+there."""
 
 _MISSING_BLOCK_LEVEL = 128  # a block with no coefficients: mid grey, every channel
 
@@ -102,7 +103,10 @@ def _ends_blank(image: Image.Image) -> bool:
     if image.mode not in ("RGB", "L") or image.height < TRUNCATED_JPEG_ROWS:
         return False
     tail = image.crop((0, image.height - TRUNCATED_JPEG_ROWS, image.width, image.height))
-    return bool(np.all(np.asarray(tail) == _MISSING_BLOCK_LEVEL))
+    if not np.all(np.asarray(tail) == _MISSING_BLOCK_LEVEL):
+        return False
+    # ... below something else: a wholly mid-grey picture is a (dull) picture
+    return bool(np.any(np.asarray(image) != _MISSING_BLOCK_LEVEL))
 
 
 def unreadable_reason(error: OSError) -> str:
