@@ -491,9 +491,11 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     write_image(stem.with_name(stem.name + DEPTH_PREVIEW_SUFFIX), depth_picture(disparity))
 
 
-def plan_summary(plan: Plan) -> dict:
+def plan_summary(plan: Plan, to_photo: float) -> dict:
+    """The plan for the run report, its crops in the photo's own pixels (as a manifest gives
+    them; to_photo: photo pixels per working pixel)."""
     return {"planner": plan.planner, "easing": plan.easing, "parallax": plan.parallax,
-            "start": asdict(plan.start), "end": asdict(plan.end)}
+            "start": asdict(plan.start.scaled(to_photo)), "end": asdict(plan.end.scaled(to_photo))}
 
 
 def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOptions
@@ -547,7 +549,7 @@ def make_clip(
         result.risk = prepared.risk.summary() if prepared.risk else None
         if options.save_depth:
             save_depth_images(output, prepared.disparity)
-        result.plan = plan_summary(prepared.plan)
+        result.plan = plan_summary(prepared.plan, photo.shape[1] / prepared.scene.width_px)
         clock = time.perf_counter()
         result.device = frames_device(options.device)
         with progress_bar(total=preset.frames_forward, desc=f"  frames {source.name}",
