@@ -113,6 +113,10 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+SUBFOLDERS_NAMED = 5
+"""An empty folder's error names this many of the subfolders it did not search."""
+
+
 def run_folder(
     folder: Path,
     output_folder: Path,
@@ -144,7 +148,13 @@ def run_folder(
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
                if manifest is not None else [])
     if not scan.photos and not scan.broken_links and not missing:
-        raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}); nothing was written")
+        skipped = ", ".join(sub.name for sub in scan.subfolders[:SUBFOLDERS_NAMED])
+        more = len(scan.subfolders) - SUBFOLDERS_NAMED
+        where = (f"; subfolders are not searched: {skipped}" + (f" and {more} more" if more > 0
+                                                                 else "")
+                 if scan.subfolders else "")
+        raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
+                               "written")
     check_writable(output_folder)
     lock = FolderLock(output_folder, "writing clips into")
     results: list[ClipResult] = []

@@ -302,6 +302,12 @@ def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):
     assert run.returncode == 3, run.stderr
     assert "no photos" in run.stderr and "empty" in run.stderr
     assert not (tmp_path / "out").exists()
+    # photos in subfolders only: the error names what it did not search
+    photo(tmp_path / "cards" / "2024-card-a" / "p.jpg", seed=0)
+    run = subprocess.run([*CLI, str(tmp_path / "cards"), "-o", str(tmp_path / "out")],
+                         capture_output=True, text=True)
+    assert run.returncode == 3, run.stderr
+    assert "subfolders are not searched: 2024-card-a" in run.stderr
 
 
 def test_progress_into_a_log_has_no_zero_lines_or_escape_codes(tmp_path):
