@@ -95,16 +95,30 @@ def schema() -> dict[str, Any]:
     return json.loads(resources.files("kbbatch").joinpath("manifest.schema.json").read_text())
 
 
+class NonFiniteNumberError(ValueError):
+    pass
+
+
+def _refuse_constant(name: str) -> float:
+    """Python's JSON reader takes NaN and Infinity, which JSON has not: with them a duration
+    or a crop passed the schema and failed later under another field's name."""
+    raise NonFiniteNumberError(f"{name} is not a number a manifest can hold (JSON has no "
+                               "NaN or Infinity)")
+
+
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
     try:
         # utf-8-sig: a byte-order mark (Notepad writes one) is not an error
-        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
+        data = json.loads(Path(path).read_text(encoding="utf-8-sig"),
+                          parse_constant=_refuse_constant)
     except UnicodeDecodeError as error:
         raise ManifestError(f"{path}: is not UTF-8 text (byte {error.start}); save it as "
                             "UTF-8") from error
     except OSError as error:
         raise ManifestError(f"{path}: cannot be read ({error.strerror})") from error
+    except NonFiniteNumberError as error:
+        raise ManifestError(f"{path}: {error}") from error
     except json.JSONDecodeError as error:
         raise ManifestError(f"{path}: malformed JSON at line {error.lineno} column "
                             f"{error.colno}: {error.msg}") from error

@@ -512,6 +512,8 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
     if "planner" in data:  # a registered name: checked when the manifest loaded
         options = replace(options, planner=data["planner"])
+    if entry.depth_file is not None and not entry.depth_file.is_file():
+        raise ManifestError(f"{entry.where('depth')}: {entry.depth_file} is not a file")
     return preset, replace(options, depth=entry_depth(entry, options.depth))
 
 

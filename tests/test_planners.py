@@ -164,6 +164,29 @@ def test_keys_naming_no_photo_of_the_folder_are_reported_not_ignored(tmp_path, q
                    for e in errors), (key, errors)
 
 
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity"])
+def test_nan_and_infinity_in_a_manifest_are_refused_by_name(tmp_path, value):
+    path = tmp_path / "m.json"
+    path.write_text('{"version": 1, "images": {"a.jpg": {"duration_s": ' + value + "}}}")
+    with pytest.raises(ManifestError, match=rf"m.json: {value} is not a number"):
+        load_manifest(path)
+
+
+def test_a_missing_depth_file_of_an_entry_names_the_manifest_image_and_field(tmp_path,
+                                                                          quick_preset):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1,
+                                    "images": {"a.jpg": {"depth": "maps/a.depth.png"}}}))
+    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
+                        show_progress=False, manifest=load_manifest(manifest))
+    [failed] = report.failed
+    assert "m.json: image 'a.jpg': field 'depth'" in failed.error
+    assert "maps/a.depth.png is not a file" in failed.error
+
+
 def test_a_manifest_that_is_not_utf8_is_a_clear_error_and_a_bom_is_fine(tmp_path):
     document = '{"version": 1, "images": {"a.jpg": {"planner": "2d"}}}'
     (tmp_path / "u16.json").write_bytes(document.encode("utf-16"))
