@@ -39,6 +39,13 @@ def test_bad_depth_files_get_a_clear_error(tmp_path, data, reason):
     assert "bad.depth.npy" in str(caught.value)
 
 
+def test_a_text_file_named_npy_is_said_to_be_no_npy_file(tmp_path):
+    (tmp_path / "b.disparity.npy").write_text("not an array")
+    with pytest.raises(DepthError, match=r"b.disparity.npy: not a readable .npy array \(it "
+                       r"does not begin as a NumPy .npy file does\)"):
+        estimate_disparity(textured_image(40, 60), tmp_path / "b.jpg")
+
+
 def write_exr(path, channels: dict) -> None:
     import OpenEXR
 

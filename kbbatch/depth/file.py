@@ -37,12 +37,19 @@ def find_depth_file(photo_path: Path) -> Path | None:
     return None
 
 
+NPY_MAGIC = b"\x93NUMPY"
+
+
 def load_map(path: Path) -> np.ndarray:
     """A single-channel float32 map from a PNG (8/16-bit), .npy or OpenEXR file."""
     if path.suffix.lower() == ".exr":
         data = load_exr(path)
     elif path.suffix.lower() == ".npy":
         try:
+            with path.open("rb") as handle:
+                is_npy = handle.read(len(NPY_MAGIC)) == NPY_MAGIC
+            if not is_npy:  # np.load reads other bytes as pickled data, and says so
+                raise ValueError("it does not begin as a NumPy .npy file does")
             data = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as error:
             raise DepthError(f"{path}: not a readable .npy array ({error})") from error
