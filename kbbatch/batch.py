@@ -216,8 +216,9 @@ def run_folder(
         bar.close()
         with contextlib.suppress(JournalError):
             for job in journal.jobs("running"):
-                journal.finish(Path(job.source), "queued", 0.0,
-                               f"interrupted by {stop.get('by', 'an error')}")
+                why = f"interrupted by {stop.get('by', 'an error')}"
+                journal.finish(Path(job.source), "queued", 0.0, why)
+                results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
         journal.close()
         report = RunReport(str(folder), str(output_folder), preset.name, results, notes,
                            stop.get("by"), options.device, providers_used())

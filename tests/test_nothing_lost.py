@@ -193,6 +193,10 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
         assert clips == ["p0.mp4"]
         report = json.loads((out / "kbbatch-report.json").read_text())
         assert report["stopped_by"] == "SIGTERM"
+    else:  # the report lists the photo that was stopped
+        report = json.loads((out / "kbbatch-report.json").read_text())
+        [stopped] = [c for c in report["clips"] if c["status"] == "interrupted"]
+        assert stopped["source"].endswith("p0.jpg") and "SIGINT" in stopped["error"]
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout, status.stdout
 
