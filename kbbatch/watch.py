@@ -30,6 +30,7 @@ from kbbatch import models
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import atomic_output, is_image_file, scan_folder, unreadable_reason
 from kbbatch.journal import (
+    FolderBusyError,
     FolderLock,
     Journal,
     JournalError,
@@ -597,6 +598,15 @@ def watch(settings: WatchSettings) -> int:
     return Daemon(settings).run()
 
 
+def _folder_in_use(outbox: Path) -> bool:
+    """Whether a batch or daemon holds the output folder's lock now."""
+    try:
+        FolderLock(outbox, "writing clips into").release()
+    except FolderBusyError:
+        return True
+    return False
+
+
 def status_lines(outbox: Path) -> list[str]:
     """The journal's counts and failures, for `kbbatch status`."""
     journal = Journal(outbox)
@@ -605,8 +615,12 @@ def status_lines(outbox: Path) -> list[str]:
         lines = [", ".join(f"{state} {count}" for state, count in counts.items())]
         lines += [f"FAILED {job.source}: {job.error}" for job in journal.jobs("failed")]
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]
-        lines += [f"RUNNING {job.source} (attempt {job.attempts})"
-                  for job in journal.jobs("running")]
+        running = journal.jobs("running")
+        if running and not _folder_in_use(outbox):  # its run was killed (kill -9, power cut)
+            lines += [f"INTERRUPTED {job.source} (no kbbatch is working in this folder; the "
+                      "next run or start takes it again)" for job in running]
+        else:
+            lines += [f"RUNNING {job.source} (attempt {job.attempts})" for job in running]
         return lines
     finally:
         journal.close()

@@ -164,6 +164,9 @@ def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
         process.send_signal(signal.SIGKILL)
         process.wait(timeout=60)
     assert list(out.glob(".*.part*")), "the kill left a partial clip (the case under test)"
+    # nothing runs there now: the killed run's photo is not shown as running
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert "RUNNING" not in status.stdout and "INTERRUPTED" in status.stdout, status.stdout
     rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                            capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
