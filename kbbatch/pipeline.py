@@ -155,6 +155,12 @@ def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Pre
     tightest_px = min(plan.start.width_px, plan.end.width_px) * to_source
     # needed scale is inversely proportional to the tightest crop: solve for the bound
     smallest_px = tightest_px * (points / MAX_CLOUD_POINTS) ** 0.5
+    if plan.planner != "manifest":  # the tool chose the crop: the photo is what is too small
+        raise CropTooSmallError(
+            f"{photo_path or 'photo'}: too small for {preset.width_px} px wide clips (its "
+            f"tightest crop, {tightest_px:.4g} of its {source_width_px} px, would need a "
+            f"{points / 1e6:,.0f} M-point cloud; the limit is {MAX_CLOUD_POINTS / 1e6:.0f} M): "
+            "use a larger photo, or a preset with a smaller output")
     raise CropTooSmallError(
         f"{photo_path or 'photo'}: a crop {tightest_px:.4g} px wide (of {source_width_px} px) "
         f"is too tight for {preset.width_px} px output: it needs a {points / 1e6:,.0f} M-point "

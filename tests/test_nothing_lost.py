@@ -217,6 +217,16 @@ def test_a_second_batch_into_the_same_folder_is_refused(tmp_path, quick_preset):
 
 
 # --- 6: crop size ---------------------------------------------------------------------------
+def test_a_photo_too_narrow_for_the_output_says_so_not_which_crop_to_give(tmp_path,
+                                                                           quick_preset):
+    """With no manifest the tool chose the crop: the photo is what is too small."""
+    photo(tmp_path / "in" / "thin.png", seed=2, height=4000, width=12)
+    report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    [failed] = report.failed
+    assert "thin.png: too small for 640 px wide clips" in failed.error
+    assert "use a larger photo" in failed.error and "make the tightest crop" not in failed.error
+
+
 @pytest.mark.parametrize("end", [{"center_x": 320, "center_y": 180, "width": 20},
                                  {"center_x": 0.5, "center_y": 0.5, "width": 0.0001}])
 def test_a_tiny_manifest_crop_is_refused_with_the_width_that_fits(tmp_path, end):
