@@ -147,7 +147,7 @@ def run_folder(
                        if output_folder.parent == folder.absolute() else ())
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
                if manifest is not None else [])
-    if not scan.photos and not scan.broken_links and not missing:
+    if not scan.photos and not scan.broken_links and not scan.not_files and not missing:
         skipped = ", ".join(sub.name for sub in scan.subfolders[:SUBFOLDERS_NAMED])
         more = len(scan.subfolders) - SUBFOLDERS_NAMED
         where = (f"; subfolders are not searched: {skipped}" + (f" and {more} more" if more > 0
@@ -163,6 +163,9 @@ def run_folder(
     for link in scan.broken_links:
         results.append(ClipResult(str(link), None, "failed", 0.0, error=f"{link}: broken "
                                   f"symbolic link (its target {os.readlink(link)} is missing)"))
+    for path in scan.not_files:
+        results.append(ClipResult(str(path), None, "failed", 0.0, error=f"{path}: is not a "
+                                  "regular file (a named pipe, socket or device); not read"))
     for name in missing:
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "

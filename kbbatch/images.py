@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import tempfile
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -71,12 +71,13 @@ class FolderScan:
     photos: list[Path]
     broken_links: list[Path]  # photo names whose symbolic link points nowhere
     subfolders: list[Path]  # not searched: one folder is one batch
+    not_files: list[Path] = field(default_factory=list)  # a photo's name on a pipe, a device
 
 
 def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     """Photos directly inside a folder in name order, and the broken links and subfolders that
     would otherwise be passed over without a word."""
-    photos, broken, subfolders = [], [], []
+    photos, broken, subfolders, not_files = [], [], [], []
     for path in sorted(folder.iterdir()):
         if path.name.startswith(".") or path.name in ignore:
             continue
@@ -85,9 +86,11 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
         elif is_image_file(path):
             if path.is_file():
                 photos.append(path)
-            elif path.is_symlink():
+            elif path.is_symlink() and not path.exists():
                 broken.append(path)
-    return FolderScan(photos, broken, subfolders)
+            else:
+                not_files.append(path)
+    return FolderScan(photos, broken, subfolders, not_files)
 
 
 TRUNCATED_JPEG_ROWS = 16

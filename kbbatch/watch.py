@@ -220,11 +220,17 @@ class InboxTracker:
         """A photo to take; a subfolder or a broken link is said once in the log."""
         if path.name in (DONE_FOLDER, FAILED_FOLDER) or path.name.startswith("."):
             return False
-        if path.is_dir() or (is_candidate(path) and path.is_symlink() and not path.exists()):
+        special = is_candidate(path) and path.exists() and not path.is_file()
+        if path.is_dir() or special or (is_candidate(path) and path.is_symlink()
+                                        and not path.exists()):
             if path not in self.mentioned:
                 self.mentioned.add(path)
-                what = ("subfolders are not watched; move its photos into the inbox"
-                        if path.is_dir() else "broken symbolic link, its target is missing")
+                if path.is_dir():
+                    what = "subfolders are not watched; move its photos into the inbox"
+                elif special:  # reading a named pipe would block a worker for good
+                    what = "not a regular file (a named pipe, socket or device); not read"
+                else:
+                    what = "broken symbolic link, its target is missing"
                 log.warning("%s: %s", path, what)
             return False
         return is_candidate(path)

@@ -304,9 +304,11 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     photo(folder / "a.jpg", seed=1)
     (folder / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
     photo(folder / "more" / "b.jpg", seed=2)
+    os.mkfifo(folder / "pipe.jpg")  # read, it would block the batch for good
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
     by_name = {Path(r.source).name: r for r in report.results}
     assert by_name["a.jpg"].status == "done"
+    assert "pipe.jpg: is not a regular file" in by_name["pipe.jpg"].error
     assert by_name["gone.jpg"].status == "failed"
     assert "broken symbolic link" in by_name["gone.jpg"].error
     assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
