@@ -279,11 +279,11 @@ def test_photos_in_flight_beside_a_dead_worker_are_not_blamed(tmp_path):
     assert not (inbox / "failed").exists(), "an innocent photo was filed as failed"
 
 
-def test_a_photo_deleted_while_it_is_read_is_skipped_not_filed_as_failed(tmp_path):
-    """Deleted from the inbox between being taken and being read, a photo failed with a raw
-    FileNotFoundError, left an error report and stayed FAILED in the status for good. (The
-    race cannot be timed in a real run: the worker's result is made here, and the runner,
-    journal and inbox are real.)"""
+def finish_one(tmp_path: Path, name: str, result_status: str, error: str | None = None
+               ) -> tuple[Path, Journal, list[Path]]:
+    """A real runner, journal and inbox finishing one photo (already gone from the inbox) whose
+    worker reported result_status; returns the inbox, the open journal and what was requeued.
+    (The races of a deletion cannot be timed in a real run: only the worker's result is made.)"""
     from concurrent.futures import Future
 
     from kbbatch.pipeline import ClipOptions, ClipResult
@@ -293,19 +293,30 @@ def test_a_photo_deleted_while_it_is_read_is_skipped_not_filed_as_failed(tmp_pat
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     outbox.mkdir()
-    photo = inbox / "gone.jpg"
+    photo, clip = inbox / name, Path(name).stem + ".mp4"
     settings = WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions())
     journal = Journal(outbox)
-    requeued = []
+    requeued: list[Path] = []
     runner = JobRunner(settings, journal, False, inbox / "failed",
                        lambda path, renamed: requeued.append(path))
-    journal.start(photo, "1:1", "settings", "gone.mp4", "0" * 64)
+    journal.start(photo, "1:1", "settings", clip, "a" * 64)
+    if result_status == "done":
+        (outbox / clip).write_bytes(b"the first photo's clip")
     future: Future = Future()
-    future.set_result(ClipResult(str(photo), None, "failed", 0.1,
-                                 error=f"{photo}: FileNotFoundError: no such file"))
-    runner.in_flight[future] = InFlight(photo, "1:1", "gone.mp4", "gone.mp4", True)
+    future.set_result(ClipResult(str(photo), str(outbox / clip) if result_status == "done"
+                                 else None, result_status, 0.1, error=error))
+    runner.in_flight[future] = InFlight(photo, "1:1", clip, clip, True)
     runner.finish_completed()
-    assert runner.in_flight == {} and requeued == []
+    assert runner.in_flight == {}
+    return inbox, journal, requeued
+
+
+def test_a_photo_deleted_while_it_is_read_is_skipped_not_filed_as_failed(tmp_path):
+    """Deleted from the inbox between being taken and being read, a photo failed with a raw
+    FileNotFoundError, left an error report and stayed FAILED in the status for good."""
+    inbox, journal, requeued = finish_one(tmp_path, "gone.jpg", "failed",
+                                          "gone.jpg: FileNotFoundError: no such file")
+    assert requeued == []
     assert journal.jobs() == [], "nothing to report about a photo its owner removed"
     assert not (inbox / "failed").exists()
     journal.close()
@@ -314,27 +325,9 @@ def test_a_photo_deleted_while_it_is_read_is_skipped_not_filed_as_failed(tmp_pat
 def test_a_clip_of_a_deleted_photo_is_not_replaced_by_a_new_photo_of_its_name(tmp_path):
     """A photo deleted while its frames rendered still gets its clip; a different photo dropped
     under the same name later replaced that clip, as if it were the first one re-rendered."""
-    from concurrent.futures import Future
-
-    from kbbatch.pipeline import ClipOptions, ClipResult
-    from kbbatch.presets import load_preset
-    from kbbatch.watch import InFlight, JobRunner, WatchSettings
-
-    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
-    inbox.mkdir()
-    outbox.mkdir()
-    photo = inbox / "del.jpg"
-    settings = WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions())
-    journal = Journal(outbox)
-    runner = JobRunner(settings, journal, False, inbox / "failed", lambda *_: None)
-    journal.start(photo, "1:1", "settings", "del.mp4", "a" * 64)
-    (outbox / "del.mp4").write_bytes(b"the first photo's clip")
-    future: Future = Future()
-    future.set_result(ClipResult(str(photo), str(outbox / "del.mp4"), "done", 1.0))
-    runner.in_flight[future] = InFlight(photo, "1:1", "del.mp4", "del.mp4", True)
-    runner.finish_completed()
+    inbox, journal, _ = finish_one(tmp_path, "del.jpg", "done")
     # a different photo arrives under the same name
-    name = journal.clip_name(photo, "b" * 64, "del.mp4", outbox)
+    name = journal.clip_name(inbox / "del.jpg", "b" * 64, "del.mp4", tmp_path / "outbox")
     assert name == "del.bbbbbbbb.mp4", name
     [job] = journal.jobs("done")
     assert job.output == "del.mp4" and "removed from the inbox" in job.source
