@@ -142,6 +142,12 @@ def cloud_scale(preset: Preset, plan: Plan, scene: SceneGeometry, source_long_px
     return max(wanted, needed, 1.0)
 
 
+MAX_PHOTO_ENLARGEMENT = 16.0
+"""A crop the tool chose is enlarged at most this much to the output width: a 4000 x 12 px strip
+planned a 16 px crop for a 640 px clip (40x, a 23 M-point cloud), spent 39 s in the fill and
+gave a smear. (A manifest's crop is the user's choice, bound by the cloud size alone.)"""
+
+
 class CropTooSmallError(ValueError):
     """A crop so tight that its clip would need an unbounded point cloud."""
 
@@ -149,18 +155,21 @@ class CropTooSmallError(ValueError):
 def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Preset,
                      source_width_px: int, photo_path: Path | None) -> None:
     points = scene.width_px * scene.height_px * scale * scale
-    if points <= MAX_CLOUD_POINTS:
-        return
     to_source = source_width_px / scene.width_px
     tightest_px = min(plan.start.width_px, plan.end.width_px) * to_source
-    # needed scale is inversely proportional to the tightest crop: solve for the bound
-    smallest_px = tightest_px * (points / MAX_CLOUD_POINTS) ** 0.5
-    if plan.planner != "manifest":  # the tool chose the crop: the photo is what is too small
+    enlargement = preset.width_px / tightest_px
+    chosen = plan.planner != "manifest"  # the tool chose the crop: the photo is too small
+    if chosen and (points > MAX_CLOUD_POINTS or enlargement > MAX_PHOTO_ENLARGEMENT):
         raise CropTooSmallError(
             f"{photo_path or 'photo'}: too small for {preset.width_px} px wide clips (its "
-            f"tightest crop, {tightest_px:.4g} of its {source_width_px} px, would need a "
-            f"{points / 1e6:,.0f} M-point cloud; the limit is {MAX_CLOUD_POINTS / 1e6:.0f} M): "
-            "use a larger photo, or a preset with a smaller output")
+            f"tightest crop, {tightest_px:.4g} of its {source_width_px} px, would be enlarged "
+            f"{enlargement:,.0f}x into a {points / 1e6:,.0f} M-point cloud; the limits are "
+            f"{MAX_PHOTO_ENLARGEMENT:.0f}x and {MAX_CLOUD_POINTS / 1e6:.0f} M): use a larger "
+            "photo, or a preset with a smaller output")
+    if points <= MAX_CLOUD_POINTS:
+        return
+    # needed scale is inversely proportional to the tightest crop: solve for the bound
+    smallest_px = tightest_px * (points / MAX_CLOUD_POINTS) ** 0.5
     raise CropTooSmallError(
         f"{photo_path or 'photo'}: a crop {tightest_px:.4g} px wide (of {source_width_px} px) "
         f"is too tight for {preset.width_px} px output: it needs a {points / 1e6:,.0f} M-point "

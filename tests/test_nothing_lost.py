@@ -220,11 +220,13 @@ def test_a_second_batch_into_the_same_folder_is_refused(tmp_path, quick_preset):
 def test_a_photo_too_narrow_for_the_output_says_so_not_which_crop_to_give(tmp_path,
                                                                            quick_preset):
     """With no manifest the tool chose the crop: the photo is what is too small."""
-    photo(tmp_path / "in" / "thin.png", seed=2, height=4000, width=12)
+    photo(tmp_path / "in" / "thin.png", seed=2, height=4000, width=12)  # cloud too large
+    photo(tmp_path / "in" / "wide.png", seed=3, height=12, width=4000)  # enlarged 40x
     report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
-    [failed] = report.failed
-    assert "thin.png: too small for 640 px wide clips" in failed.error
-    assert "use a larger photo" in failed.error and "make the tightest crop" not in failed.error
+    assert len(report.failed) == 2
+    for failed in report.failed:
+        assert ".png: too small for 640 px wide clips" in failed.error
+        assert "use a larger photo" in failed.error and "make the tightest" not in failed.error
 
 
 @pytest.mark.parametrize("end", [{"center_x": 320, "center_y": 180, "width": 20},
