@@ -193,7 +193,8 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
-    sys.exit(1 if report.failed else 0)
+    interrupted = any(r.status == "interrupted" for r in report.results)
+    sys.exit(1 if report.failed or interrupted else 0)  # incomplete either way
 
 
 def _check_depth_beside_photos(save_depth: bool, photos: Path, clips: Path) -> None:

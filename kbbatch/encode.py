@@ -20,6 +20,10 @@ import numpy as np
 
 from kbbatch.presets import Preset
 
+FFMPEG_STOP_MESSAGE = "Immediate exit requested"
+"""What ffmpeg says when a stop signal arrives before its first frame (it then also reports the
+read it broke off)."""
+
 FFMPEG_SIGNALLED_STATUS = 255
 """ffmpeg's exit status after it caught SIGTERM or SIGINT and stopped (its errors exit with 1
 and say why on stderr; a signal leaves stderr empty at -loglevel error)."""
@@ -163,6 +167,13 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
     return ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
 
 
+def _signal_name(number: int) -> str:
+    try:
+        return signal.Signals(number).name
+    except ValueError:  # a real-time signal has no name
+        return f"signal {number}"
+
+
 def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> int:
     """Write frames (H, W, 3 uint8 RGB) to path with the preset's encoder; returns the count."""
     # Its own session: a stop signal sent to the whole process group (a shell, a supervisor)
@@ -189,13 +200,15 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
         raise
     stderr = process.stderr.read().decode(errors="replace")
     status = process.wait()
-    killer = signal.Signals(-status) if status < 0 else None
-    if killer in STOP_SIGNALS or (status == FFMPEG_SIGNALLED_STATUS and not stderr.strip()):
-        cause = killer.name if killer else "a signal"
+    killer = -status if status < 0 else None
+    caught = status == FFMPEG_SIGNALLED_STATUS and (
+        not stderr.strip() or FFMPEG_STOP_MESSAGE in stderr)
+    if killer in STOP_SIGNALS or caught:
+        cause = _signal_name(killer) if killer else "a signal"
         raise EncoderStoppedError(f"ffmpeg was stopped by {cause} while writing {path}; the "
                                   "photo is not at fault and is taken again")
     if killer is not None:  # SIGXFSZ (a file-size limit), SIGKILL (out of memory): a failure
-        raise EncodeError(f"ffmpeg was killed by {killer.name} writing {path} "
+        raise EncodeError(f"ffmpeg was killed by {_signal_name(killer)} writing {path} "
                           f"{stderr.strip()[-800:]}".rstrip())
     if status != 0:
         raise EncodeError(f"ffmpeg failed writing {path}: {stderr.strip()[-800:]}")

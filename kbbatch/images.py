@@ -97,7 +97,9 @@ TRUNCATED_JPEG_ROWS = 16
 """A JPEG whose data ends early still decodes (libjpeg only warns, and Pillow does not say):
 its missing blocks come out the exact mid grey, to the bottom of the image. So many exactly
 grey bottom rows (one or two rows of blocks) below other content mark it; a photo has noise
-there."""
+there. (A picture that really ends in a band of exactly #808080 is refused too, saying so: the
+row where such a band begins cannot be told from the row where the data stopped, as chroma
+upsampling tints both.)"""
 
 _MISSING_BLOCK_LEVEL = 128  # a block with no coefficients: mid grey, every channel
 
@@ -142,7 +144,9 @@ def read_image(path: Path) -> np.ndarray:
             image.load()
             if image.format == "JPEG" and _ends_blank(image):
                 raise ImageReadError(path, "is corrupt or truncated (its image data ends early: "
-                                     f"the last {TRUNCATED_JPEG_ROWS} rows or more are blank)")
+                                     f"the last {TRUNCATED_JPEG_ROWS} rows or more are blank "
+                                     "mid grey; if the picture really ends in a #808080 band, "
+                                     "save it as PNG)")
             image = ImageOps.exif_transpose(image)
             return _to_rgb8(image)
     except ImageReadError:

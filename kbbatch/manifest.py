@@ -7,6 +7,7 @@ the image and the field.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -106,12 +107,20 @@ def _refuse_constant(name: str) -> float:
                                "NaN or Infinity)")
 
 
+def _finite_float(text: str) -> float:
+    """A JSON number; one too large for a float (1e999) would be infinity."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise NonFiniteNumberError(f"{text} is too large a number for a manifest")
+    return value
+
+
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
     try:
         # utf-8-sig: a byte-order mark (Notepad writes one) is not an error
         data = json.loads(Path(path).read_text(encoding="utf-8-sig"),
-                          parse_constant=_refuse_constant)
+                          parse_constant=_refuse_constant, parse_float=_finite_float)
     except UnicodeDecodeError as error:
         raise ManifestError(f"{path}: is not UTF-8 text (byte {error.start}); save it as "
                             "UTF-8") from error

@@ -87,6 +87,11 @@ away yet: a writer that paused longer than the settle time may still finish it."
 WORKER_DEATHS_TO_FAIL = 2
 """A photo whose worker process dies this often (while it runs alone) fails; others are retried."""
 
+ENCODER_STOPS_TO_FAIL = 3
+"""A photo whose encoder a signal stops this often in one run of the daemon fails: a request to
+stop ends the daemon too, so the same photo stopped again and again is hitting a limit (ffmpeg
+takes SIGXCPU, a CPU-time limit's signal, as it takes SIGTERM)."""
+
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
 
@@ -261,6 +266,7 @@ class JobRunner:
         self.in_flight: dict[Future, InFlight] = {}
         self.suspects: dict[Path, Suspect] = {}
         self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
+        self.encoder_stops: dict[Path, int] = {}  # photos whose encoder a signal stopped
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
 
     def recover(self) -> None:
@@ -364,19 +370,27 @@ class JobRunner:
                 self.requeue(job.path, False)
                 continue
             self.worker_deaths.pop(job.path, None)
-            if result.status == "interrupted":  # ffmpeg stopped from outside: not the photo's
-                self.journal.finish(job.path, "queued", result.seconds, result.error)
-                del self.in_flight[future]
-                log.warning("%s: %s", job.path.name, result.error)
-                self.requeue(job.path, job.renamed)
-                continue
-            if result.status == "failed" and not job.path.exists():
+            if result.status in ("failed", "interrupted") and not job.path.exists():
                 # deleted from the inbox while it was processed: the user's choice, no failure
                 self.journal.forget(job.path)
                 del self.in_flight[future]
                 log.info("%s was removed from the inbox while it was processed; skipped",
                          job.path.name)
                 continue
+            if result.status == "interrupted":  # ffmpeg stopped from outside: not the photo's
+                stops = self.encoder_stops.get(job.path, 0) + 1
+                self.encoder_stops[job.path] = stops
+                if stops < ENCODER_STOPS_TO_FAIL:
+                    self.journal.finish(job.path, "queued", result.seconds, result.error)
+                    del self.in_flight[future]
+                    log.warning("%s: %s", job.path.name, result.error)
+                    self.requeue(job.path, job.renamed)
+                    continue
+                del self.encoder_stops[job.path]
+                result.status = "failed"  # filed below: a limit, not a stop, ends its encoder
+                result.error = (f"{result.error} ({stops} times in a row: a limit such as a "
+                                "CPU-time limit stops it, not a request to stop); set aside")
+            self.encoder_stops.pop(job.path, None)
             clip = None
             if result.status == "done":
                 with contextlib.suppress(OSError):

@@ -86,8 +86,10 @@ def encoder_pids(path_part: str) -> list[int]:
     return pids
 
 
-@pytest.mark.parametrize("sent", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL])
-def test_an_encoder_stopped_by_a_signal_is_an_interruption_not_a_failure(tmp_path, sent):
+@pytest.mark.parametrize(("sent", "at_frame"), [(signal.SIGTERM, 3), (signal.SIGINT, 3),
+                                               (signal.SIGKILL, 3), (signal.SIGTERM, 0)])
+def test_an_encoder_stopped_by_a_signal_is_an_interruption_not_a_failure(tmp_path, sent,
+                                                                         at_frame):
     """A service manager stops every process of a service: ffmpeg's end is then no fault of the
     photo (it went to failed/ and was never retried)."""
     assert not issubclass(EncoderStoppedError, EncodeError)
@@ -96,7 +98,8 @@ def test_an_encoder_stopped_by_a_signal_is_an_interruption_not_a_failure(tmp_pat
 
     def frames():
         for index in range(preset.frames_total):
-            if index == 3:
+            if index == at_frame:  # at 0, before ffmpeg has read a frame
+                time.sleep(0.3)
                 [pid] = encoder_pids(str(tmp_path / "x.mp4"))
                 os.kill(pid, sent)
                 time.sleep(0.5)

@@ -164,11 +164,11 @@ def test_keys_naming_no_photo_of_the_folder_are_reported_not_ignored(tmp_path, q
                    for e in errors), (key, errors)
 
 
-@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity"])
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e999"])
 def test_nan_and_infinity_in_a_manifest_are_refused_by_name(tmp_path, value):
     path = tmp_path / "m.json"
     path.write_text('{"version": 1, "images": {"a.jpg": {"duration_s": ' + value + "}}}")
-    with pytest.raises(ManifestError, match=rf"m.json: {value} is not a number"):
+    with pytest.raises(ManifestError, match=rf"m.json: {value} is (not a|too large a) number"):
         load_manifest(path)
 
 

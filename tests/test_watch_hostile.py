@@ -332,3 +332,40 @@ def test_a_clip_of_a_deleted_photo_is_not_replaced_by_a_new_photo_of_its_name(tm
     [job] = journal.jobs("done")
     assert job.output == "del.mp4" and "removed from the inbox" in job.source
     journal.close()
+
+
+def test_a_photo_whose_encoder_is_stopped_again_and_again_is_set_aside(tmp_path):
+    """ffmpeg takes SIGXCPU (a CPU-time limit) as it takes SIGTERM: counted as interruptions
+    alone, such a photo was taken again for ever."""
+    from concurrent.futures import Future
+
+    from kbbatch.pipeline import ClipOptions, ClipResult
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import ENCODER_STOPS_TO_FAIL, InFlight, JobRunner, WatchSettings
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    photo = inbox / "a.jpg"
+    Image.fromarray(textured_image(180, 320)).save(photo)
+    journal = Journal(outbox)
+    requeued: list[Path] = []
+    runner = JobRunner(WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions()),
+                       journal, False, inbox / "failed", lambda p, renamed: requeued.append(p))
+    from kbbatch.journal import source_fingerprint
+
+    taken = source_fingerprint(photo)  # unchanged since taken: not requeued as still written
+    for attempt in range(1, ENCODER_STOPS_TO_FAIL + 1):
+        journal.start(photo, taken, "settings", "a.mp4", "a" * 64)
+        future: Future = Future()
+        future.set_result(ClipResult(str(photo), None, "interrupted", 0.1,
+                                     error="ffmpeg was stopped by a signal"))
+        runner.in_flight[future] = InFlight(photo, taken, "a.mp4", "a.mp4", True)
+        runner.finish_completed()
+        if attempt < ENCODER_STOPS_TO_FAIL:
+            assert requeued == [photo] * attempt and journal.get(photo).state == "queued"
+    assert len(requeued) == ENCODER_STOPS_TO_FAIL - 1
+    assert (inbox / "failed" / "a.jpg").is_file()
+    [failed] = journal.jobs("failed")
+    assert f"{ENCODER_STOPS_TO_FAIL} times in a row" in failed.error
+    journal.close()
