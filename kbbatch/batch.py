@@ -76,6 +76,11 @@ class RunReport:
     def failed(self) -> list[ClipResult]:
         return [r for r in self.results if r.status == "failed"]
 
+    @property
+    def interrupted(self) -> list[ClipResult]:
+        """Clips whose encoder a stop signal ended: queued for the next run."""
+        return [r for r in self.results if r.status == "interrupted"]
+
     def to_json(self) -> str:
         return json.dumps(
             {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,

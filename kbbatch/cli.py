@@ -193,8 +193,7 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
-    interrupted = any(r.status == "interrupted" for r in report.results)
-    sys.exit(1 if report.failed or interrupted else 0)  # incomplete either way
+    sys.exit(1 if report.failed or report.interrupted else 0)  # incomplete either way
 
 
 def _check_depth_beside_photos(save_depth: bool, photos: Path, clips: Path) -> None:
@@ -314,10 +313,9 @@ def _print_summary(report: RunReport) -> None:
                f"up to date, {len(report.failed)} failed, preset {report.preset}")
     if excluded:
         click.echo(f"{len(excluded)} photo(s) excluded by the manifest")
-    interrupted = [r for r in report.results if r.status == "interrupted"]
-    if interrupted:
-        click.echo(f"{len(interrupted)} clip(s) interrupted (their encoder was stopped); run "
-                   "again to finish", err=True)
+    if report.interrupted:
+        click.echo(f"{len(report.interrupted)} clip(s) interrupted (their encoder was "
+                   "stopped); run again to finish", err=True)
     if done:
         mean = sum(r.seconds for r in done) / len(done)
         click.echo(f"{mean:.1f} s per photo on average")

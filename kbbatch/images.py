@@ -74,23 +74,33 @@ class FolderScan:
     not_files: list[Path] = field(default_factory=list)  # a photo's name on a pipe, a device
 
 
+def entry_kind(path: Path) -> str | None:
+    """What a folder entry is to a runner: "subfolder", "photo", or a photo's name on what
+    cannot be read as one, "broken_link" or "not_file" (a named pipe, socket or device: reading
+    it would block); "gone" for a photo's name with nothing there now; None for anything else.
+    One answer for the batch's scan and the daemon's inbox."""
+    if path.is_dir():
+        return "subfolder"
+    if not is_image_file(path):
+        return None
+    if path.is_file():
+        return "photo"
+    if path.is_symlink() and not path.exists():
+        return "broken_link"
+    return "not_file" if path.exists() else "gone"
+
+
 def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     """Photos directly inside a folder in name order, and the broken links and subfolders that
     would otherwise be passed over without a word."""
-    photos, broken, subfolders, not_files = [], [], [], []
+    found: dict[str | None, list[Path]] = {"photo": [], "broken_link": [], "subfolder": [],
+                                           "not_file": []}
     for path in sorted(folder.iterdir()):
         if path.name.startswith(".") or path.name in ignore:
             continue
-        if path.is_dir():
-            subfolders.append(path)
-        elif is_image_file(path):
-            if path.is_file():
-                photos.append(path)
-            elif path.is_symlink() and not path.exists():
-                broken.append(path)
-            else:
-                not_files.append(path)
-    return FolderScan(photos, broken, subfolders, not_files)
+        found.setdefault(entry_kind(path), []).append(path)
+    return FolderScan(found["photo"], found["broken_link"], found["subfolder"],
+                      found["not_file"])
 
 
 TRUNCATED_JPEG_ROWS = 16

@@ -28,7 +28,13 @@ from pathlib import Path
 
 from kbbatch import models
 from kbbatch.fingerprint import file_sha256
-from kbbatch.images import atomic_output, is_image_file, scan_folder, unreadable_reason
+from kbbatch.images import (
+    atomic_output,
+    entry_kind,
+    is_image_file,
+    scan_folder,
+    unreadable_reason,
+)
 from kbbatch.journal import (
     FolderBusyError,
     FolderLock,
@@ -76,6 +82,13 @@ def is_candidate(path: Path) -> bool:
     name = path.name.lower()
     return is_image_file(path) and not name.endswith(TEMPORARY_SUFFIXES)
 
+
+UNUSABLE_ENTRIES = {
+    "subfolder": "subfolders are not watched; move its photos into the inbox",
+    "broken_link": "broken symbolic link, its target is missing",
+    "not_file": "not a regular file (a named pipe, socket or device); not read",
+}
+"""What the log says, once, of an inbox entry that is no photo to take (images.entry_kind)."""
 
 GONE_MARK = " (removed from the inbox)"
 """Added to the journal's record of a photo deleted while its clip was made."""
@@ -222,21 +235,14 @@ class InboxTracker:
                                           renamed or (previous.renamed if previous else False))
 
     def usable(self, path: Path) -> bool:
-        """A photo to take; a subfolder or a broken link is said once in the log."""
+        """A photo to take; a subfolder, broken link or pipe is said once in the log."""
         if path.name in (DONE_FOLDER, FAILED_FOLDER) or path.name.startswith("."):
             return False
-        special = is_candidate(path) and path.exists() and not path.is_file()
-        if path.is_dir() or special or (is_candidate(path) and path.is_symlink()
-                                        and not path.exists()):
+        kind = entry_kind(path)
+        if kind in UNUSABLE_ENTRIES:
             if path not in self.mentioned:
                 self.mentioned.add(path)
-                if path.is_dir():
-                    what = "subfolders are not watched; move its photos into the inbox"
-                elif special:  # reading a named pipe would block a worker for good
-                    what = "not a regular file (a named pipe, socket or device); not read"
-                else:
-                    what = "broken symbolic link, its target is missing"
-                log.warning("%s: %s", path, what)
+                log.warning("%s: %s", path, UNUSABLE_ENTRIES[kind])
             return False
         return is_candidate(path)
 

@@ -7,14 +7,13 @@ from a move too small to see; ties break deterministically; a plan always comes 
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from kbbatch import paper
+from kbbatch import models, paper
 from kbbatch.camera import (
     Crop,
     Plan,
@@ -33,9 +32,12 @@ from kbbatch.render import PointCloud, back_project, coverage, depth_edges
 SEARCH_LONG_SIDE_PX = 256
 """Candidates are rendered at this long side (a quarter of the working size)."""
 
-SEARCH_THREADS = os.cpu_count() or 1
-"""Candidates rendered at once: the splatting kernels release the GIL, and each candidate's
-view is independent of the others."""
+
+def search_threads() -> int:
+    """Candidates rendered at once: this process's share of the cores (as its ONNX sessions
+    get; the daemon's --jobs workers share them). The splatting kernels release the GIL, and
+    each candidate's view is independent of the others."""
+    return models.session_threads()
 
 SALIENCY_WEIGHT = 0.05
 """Score per unit of distance (in crop widths) between the tight crop and the salient object."""
@@ -183,7 +185,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
         crop = zoomed(tight, 1.0, (float(tight.center_x_px + dx), float(tight.center_y_px + dy)))
         if crop.inside(width, height):
             searched.append((crop, dx, dy))
-    with ThreadPoolExecutor(SEARCH_THREADS) as pool:
+    with ThreadPoolExecutor(search_threads()) as pool:
         fractions = list(pool.map(lambda s: coarse.disoccluded(wide, s[0], region), searched))
     candidates = []
     for (crop, dx, dy), disoccluded in zip(searched, fractions, strict=True):

@@ -69,9 +69,9 @@ def test_the_search_scores_the_same_in_parallel_threads(monkeypatch):
     from kbbatch.planners.auto import score_candidates
 
     request = request_for(1024, 576, "slideshow", disparity=card_scene())
-    monkeypatch.setattr(auto_module, "SEARCH_THREADS", 1)
+    monkeypatch.setattr(auto_module, "search_threads", lambda: 1)
     _, alone, _ = score_candidates(request)
-    monkeypatch.setattr(auto_module, "SEARCH_THREADS", 4)
+    monkeypatch.setattr(auto_module, "search_threads", lambda: 4)
     _, threaded, _ = score_candidates(request)
     assert len(alone) > 50
     assert len({c.disoccluded for c in alone}) > 5, "the card must reveal more in some crops"
