@@ -63,6 +63,12 @@ def wait_for(condition, timeout_s: float, what: str) -> None:
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
+def process_state(pid: int) -> str:
+    """The state letter of a process (R running, S sleeping, T stopped, Z ended, ...)."""
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return stat.rsplit(")", 1)[1].split()[0]
+
+
 def finished_jobs(outbox: Path) -> int:
     if not (outbox / ".kbbatch-journal.sqlite").exists():
         return 0
@@ -188,7 +194,7 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     outbox.mkdir()
-    preset = preset_file(tmp_path, 12.0, fps=25.0)
+    preset = preset_file(tmp_path, 40.0, fps=25.0)
     [photo] = shared_photos(1)
     shutil.copy(photo, inbox / "a.jpg")
     daemon = start_daemon(inbox, outbox, preset)
@@ -200,14 +206,21 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
             return bool(encoders)
 
         wait_for(encoding, 120, "the encoder of a.jpg's clip")
+        # Held still while the signals are sent, so that on a loaded machine it cannot finish
+        # the clip between being found and being signalled (it then takes SIGTERM on SIGCONT).
+        for pid in encoders:
+            os.kill(pid, signal.SIGSTOP)
+        assert all(process_state(pid) == "T" for pid in encoders), "the encoder ended too soon"
         daemon.send_signal(signal.SIGTERM)
         for pid in encoders:
             os.kill(pid, signal.SIGTERM)
+            os.kill(pid, signal.SIGCONT)
         assert daemon.wait(timeout=60) == 0
     finally:
         if daemon.poll() is None:
             daemon.kill()
-    assert (inbox / "a.jpg").is_file() and not (inbox / "failed").exists()
+    log = (tmp_path / "daemon.log").read_text(errors="replace")
+    assert (inbox / "a.jpg").is_file() and not (inbox / "failed").exists(), log
     journal = Journal(outbox)
     job = journal.get(inbox / "a.jpg")
     journal.close()
