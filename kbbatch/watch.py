@@ -204,16 +204,28 @@ class InboxTracker:
         self.events: queue.Queue[tuple[Path, bool]] = queue.Queue()  # filled by the observer
         self.arrivals: dict[Path, Arrival] = {}
         self.mentioned: set[Path] = set()  # subfolders and broken links already logged
+        self.removals: queue.Queue[Path] = queue.Queue()  # filled by the observer
+        self.removed: set[Path] = set()  # taken photos deleted since (their clips in flight)
 
     def notice(self, path: Path, renamed: bool = False) -> None:
         """A file event (from any thread), or a photo handed back to be taken again."""
         self.events.put((path, renamed))
 
+    def notice_removal(self, path: Path) -> None:
+        """A file was deleted from the inbox (from the observer's thread)."""
+        self.removals.put(path)
+
     def forget(self, path: Path) -> None:
         """The photo was taken (or filed away): no longer waiting."""
         del self.arrivals[path]
+        self.removed.discard(path)
 
     def collect_events(self) -> None:
+        while True:
+            try:
+                self.removed.add(self.removals.get_nowait())
+            except queue.Empty:
+                break
         now = time.monotonic()
         while True:
             try:
@@ -356,7 +368,9 @@ class JobRunner:
                     if p.stem.lower() == source.stem.lower() and p != source]
         return output_names([source, *siblings])[source]
 
-    def finish_completed(self) -> None:
+    def finish_completed(self, removed: set[Path] | frozenset[Path] = frozenset()) -> None:
+        """Record the clips that are finished; removed: photos deleted from the inbox since
+        they were taken (a file now at such a path is another photo)."""
         if any(f.done() and isinstance(f.exception(), BrokenProcessPool)
                for f in self.in_flight):
             self.recover_from_worker_death()
@@ -367,7 +381,11 @@ class JobRunner:
             except Exception as error:  # the call itself failed (not the photo's pipeline)
                 result = ClipResult(str(job.path), None, "failed", 0.0,
                                     error=f"{job.path}: worker failed: {error}")
-            if self.changed_since_taken(job):
+            # Deleted and another photo put under its name while the clip was made: the clip is
+            # the deleted photo's, and the new one is a photo of its own, not an edit of it.
+            replaced = (result.status == "done" and job.path in removed
+                        and job.path.exists())
+            if self.changed_since_taken(job) and not replaced:
                 self.journal.finish(job.path, "queued", result.seconds,
                                     "changed while being processed")
                 del self.in_flight[future]
@@ -403,12 +421,17 @@ class JobRunner:
                     clip = source_fingerprint(self.settings.outbox / job.output)
             self.journal.finish(job.path, result.status, result.seconds, result.error, clip)
             del self.in_flight[future]
-            if result.status == "done" and not job.path.exists():
+            if result.status == "done" and (replaced or not job.path.exists()):
                 # Deleted while its frames rendered: its clip no longer belongs to the inbox
                 # path, or a different photo dropped there later would take the clip's name
                 # as its own re-render and replace it.
                 self.journal.moved(job.path, job.path.with_name(f"{job.path.name}{GONE_MARK}"))
-            if result.status == "done":
+            if replaced:
+                log.info("done %s in %.1f s -> %s; %s was replaced by another photo while "
+                         "its clip was made: that one gets a clip of its own", job.path.name,
+                         result.seconds, result.output, job.path.name)
+                self.requeue(job.path, False)
+            elif result.status == "done":
                 self.move_source(job.path, DONE_FOLDER)
                 log.info("done %s in %.1f s -> %s", job.path.name, result.seconds,
                          result.output)
@@ -563,7 +586,7 @@ class Daemon:
         jobs.recover()
         signal.signal(signal.SIGTERM, self.request_stop)
         signal.signal(signal.SIGINT, self.request_stop)
-        observer = start_observer(s.inbox, s.poll, self.inbox.notice)
+        observer = start_observer(s.inbox, s.poll, self.inbox.notice, self.inbox.notice_removal)
         for path in sorted(s.inbox.iterdir()):
             self.inbox.notice(path)
         threads = max(1, (os.cpu_count() or 1) // s.jobs)
@@ -577,7 +600,7 @@ class Daemon:
                 try:
                     self.inbox.collect_events()
                     jobs.submit_ready(self.inbox, options, self.stopping)
-                    jobs.finish_completed()
+                    jobs.finish_completed(self.inbox.removed)
                     jobs.file_suspects()
                 except JournalError as error:
                     log.error("%s; pausing %.0f s, then retrying (nothing is lost)", error,
@@ -596,9 +619,10 @@ class Daemon:
         return 0
 
 
-def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None]):
+def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None],
+                   notice_removal: Callable[[Path], None]):
     """watchdog's observer of the inbox (inotify, or polling for network shares), calling
-    notice(path, renamed) from its own thread."""
+    notice(path, renamed) and notice_removal(path) from its own thread."""
     from watchdog.events import FileSystemEventHandler
     from watchdog.observers import Observer
     from watchdog.observers.polling import PollingObserver
@@ -612,7 +636,13 @@ def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None]
                 notice(Path(event.src_path), False)
 
         def on_moved(self, event):
+            if not event.is_directory:
+                notice_removal(Path(event.src_path))  # renamed away: its name is free
             notice(Path(event.dest_path), True)
+
+        def on_deleted(self, event):
+            if not event.is_directory:
+                notice_removal(Path(event.src_path))
 
     observer = PollingObserver(timeout=0.5) if poll else Observer()
     observer.schedule(Handler(), str(inbox), recursive=False)

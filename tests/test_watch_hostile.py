@@ -369,3 +369,53 @@ def test_a_photo_whose_encoder_is_stopped_again_and_again_is_set_aside(tmp_path)
     [failed] = journal.jobs("failed")
     assert f"{ENCODER_STOPS_TO_FAIL} times in a row" in failed.error
     journal.close()
+
+
+def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_that_clip(
+        tmp_path):
+    """Deleted, and a different photo saved under its name before its clip was finished: the
+    new photo was taken for an edit of the first (changed while processed), rendered again
+    under the first one's clip name, and replaced the first photo's clip."""
+    import hashlib
+    import shutil
+
+    from .test_encode import encoder_pids
+    from .test_watch import process_state
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 40.0, fps=25.0)  # a long encode, to act during it
+    first, second = photo_bytes(tmp_path, 1), photo_bytes(tmp_path, 2)
+    drop(inbox, "a.jpg", first)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        encoders: list[int] = []
+
+        def encoding() -> bool:
+            encoders[:] = encoder_pids(str(outbox / ".a."))
+            return bool(encoders)
+
+        wait_for(encoding, 120, "the encoder of a.jpg's clip")
+        for pid in encoders:  # held still, so the replacement surely lands mid-clip
+            os.kill(pid, signal.SIGSTOP)
+        assert all(process_state(pid) == "T" for pid in encoders), "the encoder ended too soon"
+        (inbox / "a.jpg").unlink()
+        time.sleep(0.5)
+        staging = tmp_path / "other.jpg"
+        staging.write_bytes(second)
+        shutil.copy(staging, inbox / "a.jpg")  # a new file under the same name
+        time.sleep(1.0)  # the daemon sees the deletion and the new file
+        for pid in encoders:
+            os.kill(pid, signal.SIGCONT)
+        wait_for(lambda: len(clips_in(outbox)) == 2, 240, "a clip of each photo")
+    finally:
+        assert stop(daemon) == 0
+    log = daemon_log(tmp_path)
+    by_output = {job.output: job for job in Journal(outbox).jobs("done")}
+    second_name = f"a.{hashlib.sha256(second).hexdigest()[:8]}.mp4"
+    assert sorted(by_output) == sorted(["a.mp4", second_name]), log
+    assert by_output["a.mp4"].content == hashlib.sha256(first).hexdigest(), log
+    assert by_output[second_name].content == hashlib.sha256(second).hexdigest()
+    assert (inbox / "done" / "a.jpg").read_bytes() == second
+    assert "replaced by another photo" in log
