@@ -226,21 +226,33 @@ class FolderBusyError(RuntimeError):
     pass
 
 
+LOCK_WAIT_S = 1.0
+"""How long a run waits for a folder's lock before it says another kbbatch holds it: `kbbatch
+status` takes the lock for an instant to tell a killed run from a live one."""
+
+
 class FolderLock:
     """An exclusive lock on a folder (flock on the folder itself, so it needs no file there and
     works on a read-only inbox); released when the process ends, even by kill -9."""
 
-    def __init__(self, folder: Path, what: str) -> None:
+    def __init__(self, folder: Path, what: str, wait_s: float = LOCK_WAIT_S) -> None:
         import fcntl
         import os
+        import time
 
         self.descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            fcntl.flock(self.descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError as error:
-            os.close(self.descriptor)
-            raise FolderBusyError(f"{folder}: another kbbatch is already {what} this folder; "
-                                  "stop it first") from error
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(self.descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError as error:
+                if time.monotonic() < deadline:
+                    time.sleep(0.05)
+                    continue
+                os.close(self.descriptor)
+                raise FolderBusyError(f"{folder}: another kbbatch is already {what} this "
+                                      "folder; stop it first") from error
 
     def release(self) -> None:
         import os

@@ -657,7 +657,7 @@ def watch(settings: WatchSettings) -> int:
 def _folder_in_use(outbox: Path) -> bool:
     """Whether a batch or daemon holds the output folder's lock now."""
     try:
-        FolderLock(outbox, "writing clips into").release()
+        FolderLock(outbox, "writing clips into", wait_s=0.0).release()
     except FolderBusyError:
         return True
     return False

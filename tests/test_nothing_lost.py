@@ -216,6 +216,17 @@ def test_a_second_batch_into_the_same_folder_is_refused(tmp_path, quick_preset):
     assert not visible_clips(tmp_path / "out")
 
 
+def test_a_run_starting_while_status_looks_at_the_folder_is_not_refused(tmp_path):
+    """`kbbatch status` takes the output folder's lock for an instant (to tell a killed run
+    from a live one): a batch or daemon starting in that instant was refused."""
+    import threading
+
+    (tmp_path / "out").mkdir()
+    glance = FolderLock(tmp_path / "out", "writing clips into", wait_s=0.0)
+    threading.Timer(0.2, glance.release).start()
+    FolderLock(tmp_path / "out", "writing clips into").release()  # waits for the glance
+
+
 # --- 6: crop size ---------------------------------------------------------------------------
 def test_a_photo_too_narrow_for_the_output_says_so_not_which_crop_to_give(tmp_path,
                                                                            quick_preset):
