@@ -368,9 +368,11 @@ class JobRunner:
                     if p.stem.lower() == source.stem.lower() and p != source]
         return output_names([source, *siblings])[source]
 
-    def finish_completed(self, removed: set[Path] | frozenset[Path] = frozenset()) -> None:
-        """Record the clips that are finished; removed: photos deleted from the inbox since
-        they were taken (a file now at such a path is another photo)."""
+    def finish_completed(self, removed: set[Path] | None = None) -> None:
+        """Record the clips that are finished. removed: photos deleted from the inbox since
+        they were taken (a file now at such a path is another photo); deletions of photos no
+        longer in flight (the moves to done/ among them) are dropped from it."""
+        removed = set() if removed is None else removed
         if any(f.done() and isinstance(f.exception(), BrokenProcessPool)
                for f in self.in_flight):
             self.recover_from_worker_death()
@@ -443,6 +445,7 @@ class JobRunner:
                          "if it stays unchanged that long", job.path.name, grace)
             else:
                 self.file_failure(job.path, result)
+        removed.intersection_update(job.path for job in self.in_flight.values())
 
     def recover_from_worker_death(self) -> None:
         """A worker process died (out of memory, killed): the pool is broken and every photo in

@@ -334,6 +334,29 @@ def test_a_clip_of_a_deleted_photo_is_not_replaced_by_a_new_photo_of_its_name(tm
     journal.close()
 
 
+def test_deletions_are_kept_only_while_their_photos_are_in_flight(tmp_path):
+    """Every photo moved to done/ is a deletion to the observer: kept for good, the record of
+    deletions grew with every photo a long-running daemon made."""
+    inbox, journal, _ = finish_one(tmp_path, "x.jpg", "done")
+    from kbbatch.pipeline import ClipOptions
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import JobRunner, WatchSettings
+
+    runner = JobRunner(WatchSettings(inbox, tmp_path / "outbox", load_preset("preview"),
+                                     ClipOptions()), journal, False, inbox / "failed",
+                       lambda path, renamed: None)
+    from concurrent.futures import Future
+
+    from kbbatch.watch import InFlight
+
+    rendering = inbox / "z.jpg"  # its clip is still being made: its deletion matters
+    runner.in_flight[Future()] = InFlight(rendering, "1:1", "z.mp4", "z.mp4", True)
+    removed = {inbox / "x.jpg", inbox / "y.jpg", rendering}
+    runner.finish_completed(removed)
+    assert removed == {rendering}
+    journal.close()
+
+
 def test_a_photo_whose_encoder_is_stopped_again_and_again_is_set_aside(tmp_path):
     """ffmpeg takes SIGXCPU (a CPU-time limit) as it takes SIGTERM: counted as interruptions
     alone, such a photo was taken again for ever."""
