@@ -394,8 +394,9 @@ def test_a_photo_whose_encoder_is_stopped_again_and_again_is_set_aside(tmp_path)
     journal.close()
 
 
+@pytest.mark.parametrize("observer", [(), ("--poll",)], ids=["inotify", "polling"])
 def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_that_clip(
-        tmp_path):
+        tmp_path, observer):
     """Deleted, and a different photo saved under its name before its clip was finished: the
     new photo was taken for an edit of the first (changed while processed), rendered again
     under the first one's clip name, and replaced the first photo's clip."""
@@ -411,7 +412,7 @@ def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_th
     preset = preset_file(tmp_path, 40.0, fps=25.0)  # a long encode, to act during it
     first, second = photo_bytes(tmp_path, 1), photo_bytes(tmp_path, 2)
     drop(inbox, "a.jpg", first)
-    daemon = start_daemon(inbox, outbox, preset)
+    daemon = start_daemon(inbox, outbox, preset, *observer)
     try:
         encoders: list[int] = []
 
