@@ -92,3 +92,19 @@ def test_openexr_without_its_package_says_how_to_install_it(tmp_path, monkeypatc
     monkeypatch.setitem(sys.modules, "OpenEXR", None)  # as on a machine without the extra
     with pytest.raises(DepthError, match=r'c\.depth\.exr: .*pip install "kbbatch\[exr\]"'):
         estimate_disparity(textured_image(40, 60), tmp_path / "c.jpg")
+
+
+def test_unknown_pixels_beside_an_object_take_the_depth_behind_it_not_the_farthest(tmp_path):
+    """A depth sensor's shadow beside an object (zeros) was set to the farthest depth of the
+    whole map: a pit beside the outline that the move tore open into shards of fill."""
+    from kbbatch.depth.file import disparity_from_map
+
+    depth = np.full((40, 60), 5.0, np.float32)  # a wall 5 m away
+    depth[:8] = 40.0  # far away through a window at the top
+    depth[15:35, 20:30] = 2.0  # an object in front of the wall
+    depth[15:35, 30:34] = 0.0  # its shadow on the wall: unknown
+    depth[0, 0] = 0.0  # unknown, with only far pixels around
+    disparity = disparity_from_map(depth, "depth", tmp_path / "a.depth.png", 40, 60)
+    assert disparity[20:30, 30:34] == pytest.approx(1 / 5.0)  # the wall behind, not 1/40
+    assert disparity[0, 0] == pytest.approx(1 / 40.0)
+    assert disparity[20, 25] == pytest.approx(1 / 2.0) and disparity[20, 45] == pytest.approx(0.2)
