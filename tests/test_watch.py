@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -67,6 +68,37 @@ def process_state(pid: int) -> str:
     """The state letter of a process (R running, S sleeping, T stopped, Z ended, ...)."""
     stat = Path(f"/proc/{pid}/stat").read_text()
     return stat.rsplit(")", 1)[1].split()[0]
+
+
+def held_encoders(outbox: Path, stem: str) -> list[int]:
+    """Waits for the encoder of stem's clip and stops it (SIGSTOP; SIGCONT goes on): held
+    still, the clip is surely unfinished while a test acts (its encode may last a second)."""
+    from .test_encode import encoder_pids
+
+    encoders: list[int] = []
+
+    def encoding() -> bool:
+        encoders[:] = encoder_pids(str(outbox / f".{stem}."))
+        return bool(encoders)
+
+    wait_for(encoding, 120, f"the encoder of {stem}'s clip")
+    for pid in encoders:
+        os.kill(pid, signal.SIGSTOP)
+
+    def stopped() -> bool:  # a signal is delivered some time after kill() returns
+        try:
+            return all(process_state(pid) == "T" for pid in encoders)
+        except FileNotFoundError:  # ended and reaped
+            return False
+
+    try:
+        wait_for(stopped, 10, "the encoder to stop")
+    except AssertionError:
+        for pid in encoders:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+        raise AssertionError(f"the encoder of {stem}'s clip ended before it was held") from None
+    return encoders
 
 
 def finished_jobs(outbox: Path) -> int:
@@ -189,8 +221,6 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
     """systemd's default stop sends SIGTERM to every process of the service, ffmpeg included:
     the photo in progress went to failed/ and was never retried. It stays in the inbox, queued,
     and the next start makes its clip."""
-    from .test_encode import encoder_pids
-
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     outbox.mkdir()
@@ -199,18 +229,9 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
     shutil.copy(photo, inbox / "a.jpg")
     daemon = start_daemon(inbox, outbox, preset)
     try:
-        encoders: list[int] = []
-
-        def encoding() -> bool:
-            encoders[:] = encoder_pids(str(outbox / ".a."))
-            return bool(encoders)
-
-        wait_for(encoding, 120, "the encoder of a.jpg's clip")
         # Held still while the signals are sent, so that on a loaded machine it cannot finish
         # the clip between being found and being signalled (it then takes SIGTERM on SIGCONT).
-        for pid in encoders:
-            os.kill(pid, signal.SIGSTOP)
-        assert all(process_state(pid) == "T" for pid in encoders), "the encoder ended too soon"
+        encoders = held_encoders(outbox, "a")
         daemon.send_signal(signal.SIGTERM)
         for pid in encoders:
             os.kill(pid, signal.SIGTERM)

@@ -403,8 +403,7 @@ def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_th
     import hashlib
     import shutil
 
-    from .test_encode import encoder_pids
-    from .test_watch import process_state
+    from .test_watch import held_encoders
 
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
@@ -414,16 +413,7 @@ def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_th
     drop(inbox, "a.jpg", first)
     daemon = start_daemon(inbox, outbox, preset, *observer)
     try:
-        encoders: list[int] = []
-
-        def encoding() -> bool:
-            encoders[:] = encoder_pids(str(outbox / ".a."))
-            return bool(encoders)
-
-        wait_for(encoding, 120, "the encoder of a.jpg's clip")
-        for pid in encoders:  # held still, so the replacement surely lands mid-clip
-            os.kill(pid, signal.SIGSTOP)
-        assert all(process_state(pid) == "T" for pid in encoders), "the encoder ended too soon"
+        encoders = held_encoders(outbox, "a")  # so the replacement surely lands mid-clip
         (inbox / "a.jpg").unlink()
         time.sleep(0.5)
         staging = tmp_path / "other.jpg"
