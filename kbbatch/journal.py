@@ -237,8 +237,6 @@ class FolderLock:
 
     def __init__(self, folder: Path, what: str, wait_s: float = LOCK_WAIT_S) -> None:
         import fcntl
-        import os
-        import time
 
         self.descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
         deadline = time.monotonic() + wait_s
@@ -255,6 +253,4 @@ class FolderLock:
                                       "folder; stop it first") from error
 
     def release(self) -> None:
-        import os
-
         os.close(self.descriptor)

@@ -15,6 +15,7 @@ import numpy as np
 
 from kbbatch.camera import ASPECT_TOLERANCE
 from kbbatch.depth import DepthError, DepthResult
+from kbbatch.layers import nearest_pixels
 
 DEPTH_FILE_KINDS = ("depth", "disparity")
 DEPTH_FILE_SUFFIXES = (".png", ".npy", ".exr")
@@ -105,13 +106,13 @@ def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, wid
     if abs(map_aspect / photo_aspect - 1.0) > ASPECT_TOLERANCE:
         raise DepthError(f"{path}: is {data.shape[1]}x{data.shape[0]} (aspect {map_aspect:.3f}) "
                          f"but the photo's aspect is {photo_aspect:.3f}")
-    farthest = values.min() if kind == "disparity" else 1.0 / values.max()
-    known = np.where(valid, data if kind == "disparity" else 1.0 / np.where(valid, data, 1.0),
-                     0.0).astype(np.float32)
+    disparity = np.zeros(data.shape, np.float32)
+    disparity[valid] = values if kind == "disparity" else 1.0 / values
+    farthest = float(disparity[valid].min())
     # Infinite depth (a renderer's empty sky) is the farthest of all; an unknown pixel (a
     # sensor's shadow, a stereo occlusion) lies beside an object, on the far side.
-    known[np.isinf(data)] = farthest
-    disparity = far_side_fill(known, known > 0, farthest)
+    disparity[np.isinf(data)] = farthest
+    disparity = far_side_fill(disparity, disparity > 0, farthest)
     return cv2.resize(disparity, (width, height), interpolation=cv2.INTER_LINEAR)
 
 
@@ -141,12 +142,7 @@ def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float) -> 
     if not far_side.any():  # nothing known around anything unknown
         filled[unknown] = fallback
         return filled
-    _, nearest = cv2.distanceTransformWithLabels(
-        (~far_side).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-    rows, cols = np.nonzero(far_side)
-    value_by_label = np.zeros(int(nearest.max()) + 1, np.float32)
-    value_by_label[nearest[rows, cols]] = filled[rows, cols]
-    filled[unknown] = value_by_label[nearest[unknown]]
+    filled[unknown] = filled[nearest_pixels(far_side, unknown)]
     return filled
 
 
