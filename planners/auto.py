@@ -39,6 +39,7 @@ def search_threads() -> int:
     each candidate's view is independent of the others."""
     return models.session_threads()
 
+
 SALIENCY_WEIGHT = 0.05
 """Score per unit of distance (in crop widths) between the tight crop and the salient object."""
 
