@@ -246,6 +246,34 @@ def test_a_frame_or_a_lattice_is_no_upright_card():
     assert not stands_up(lattice.astype(bool))
 
 
+def test_a_salient_card_takes_back_the_half_salient_notch_isnet_left_in_it():
+    """ISNet left a guitar's fretboard and sound hole out of its card (half-salient), a notch
+    open only to the neck: the move slid the body off them and filled them with wall
+    (Middlebury's Piano). A notch ISNet is sure is background (between a stool's legs) and a
+    wide bay stay background."""
+    import cv2
+
+    from kbbatch.depth import SceneContext
+    from kbbatch.depth.popup import salient_cards
+
+    saliency = np.full((240, 400), 0.05, np.float32)
+    cv2.ellipse(saliency, (110, 150), (70, 80), 0, 0, 360, 0.95, -1)  # the body
+    cv2.rectangle(saliency, (100, 60), (120, 140), 0.4, -1)  # fretboard, half-salient
+    cv2.circle(saliency, (110, 140), 16, 0.35, -1)  # sound hole
+    cv2.rectangle(saliency, (230, 80), (350, 230), 0.95, -1)  # a stool
+    cv2.rectangle(saliency, (262, 150), (282, 239), 0.05, -1)  # gap between its legs
+    cv2.rectangle(saliency, (300, 120), (350, 239), 0.4, -1)  # a bay wider than a notch
+    context = SceneContext(np.zeros((240, 400, 3), np.uint8))
+    context.__dict__.update(saliency=saliency, instances=[])
+    cards = salient_cards(context)
+    assert len(cards) == 2
+    guitar, stool = sorted((mask for mask, _ in cards), key=lambda mask: np.argmax(mask.any(0)))
+    assert guitar[100:150, 105:116].all()  # the fretboard and the sound hole are on the card
+    assert not guitar[:70].any()  # the neck above the body is not
+    assert not stool[170:, 265:280].any()
+    assert not stool[170:, 305:350].any()
+
+
 def test_the_ground_plane_has_no_corner_and_stays_finite_at_any_horizon():
     for horizon in (0.0, 0.3, 0.45, 1.0):
         column = ground_plane_disparity(400, 2, horizon)[:, 0].astype(np.float64)

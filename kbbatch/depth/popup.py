@@ -41,6 +41,17 @@ thin structure (a launch tower): as one flat card its bars tear from what they s
 GROUNDED_EXCEPTIONS = ("bird",)
 """Classes that need not stand on the ground (they do not push the horizon up)."""
 
+NOTCH_MOUTH_PX = 16
+"""A salient card's notches and holes whose mouths are narrower than twice this (working px)
+are candidates to join the card: ISNet left a guitar's fretboard, sound hole and a wedge of
+its body out of the card (half-salient, 0.3 to 0.45), a notch open only to the neck, and the
+move slid the card's body off the rest, filling the notch with a grey wedge of wall."""
+
+NOTCH_SALIENCY_MIN = 0.3
+"""... and join it where ISNet's map over them is at least this on average: the network was
+unsure there, not sure of background (the gaps between a bench's legs, a wall between arms:
+0.02 to 0.15)."""
+
 CONTACT_GAP_PX = 8
 """A card stands at the ground's disparity of its lowest row; where its outline ends up to this
 many rows (working px) above that row in a column, the ground there, farther than the card,
@@ -87,9 +98,28 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     binary = (saliency > SALIENT_THRESHOLD).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
-    cards = [clean_mask(labels == k) for k in range(1, count)
+    cards = [close_notches(clean_mask(labels == k), saliency) for k in range(1, count)
              if stats[k, cv2.CC_STAT_AREA] >= minimum]
     return [(card, True) for card in cards if card.sum() >= minimum and stands_up(card)]
+
+
+def close_notches(mask: np.ndarray, saliency: np.ndarray) -> np.ndarray:
+    """mask with its narrow-mouthed notches and holes that ISNet found half-salient."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * NOTCH_MOUTH_PX + 1,) * 2)
+    closed = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
+    count, labels = cv2.connectedComponents(1 - closed, connectivity=4)
+    open_to_border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0],
+                                               labels[:, -1]]))
+    enclosed = ~np.isin(labels, open_to_border[open_to_border > 0]) & (labels > 0)
+    added = (closed.astype(bool) | enclosed) & ~mask
+    count, labels = cv2.connectedComponents(added.astype(np.uint8), connectivity=8)
+    if count <= 1:
+        return mask
+    sums = np.bincount(labels.ravel(), weights=saliency.ravel(), minlength=count)
+    areas = np.bincount(labels.ravel(), minlength=count)
+    joins = sums >= NOTCH_SALIENCY_MIN * areas
+    joins[0] = False
+    return mask | joins[labels]
 
 
 def stands_up(mask: np.ndarray) -> bool:
