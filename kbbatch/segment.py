@@ -429,13 +429,26 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     opened = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
     if keep is not None:
         opened |= (binary.astype(bool) & keep).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(1 - opened, connectivity=4)
-    area = int(opened.sum())
-    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    small_holes = [k for k in range(1, count) if k not in border
-                   and stats[k, cv2.CC_STAT_AREA] < HOLE_FILL_MAX_FRACTION * area]
-    filled = opened.astype(bool) | np.isin(labels, small_holes)
-    return drop_fragments(filled, keep)
+    labels, areas = enclosed_holes(opened)
+    small = areas < HOLE_FILL_MAX_FRACTION * int(opened.sum())
+    small[0] = False
+    return drop_fragments(opened.astype(bool) | small[labels], keep)
+
+
+def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The background regions mask encloses (4-connected, off the image border) numbered from
+    1, 0 elsewhere, and each number's area in pixels (0 for 0)."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(
+        (~mask.astype(bool)).astype(np.uint8), connectivity=4)
+    open_to_border = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    number = np.zeros(count, np.int32)
+    enclosed = np.ones(count, bool)
+    enclosed[0] = False  # the mask itself
+    enclosed[open_to_border] = False
+    number[enclosed] = np.arange(1, int(enclosed.sum()) + 1)
+    areas = np.zeros(int(enclosed.sum()) + 1, np.int64)
+    areas[1:] = stats[enclosed, cv2.CC_STAT_AREA]
+    return number[labels], areas
 
 
 def drop_fragments(mask: np.ndarray, keep: np.ndarray | None = None,

@@ -12,7 +12,7 @@ import numpy as np
 
 from kbbatch.depth import DepthResult, SceneContext
 from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
-from kbbatch.segment import SALIENT_THRESHOLD, clean_mask, group_cards
+from kbbatch.segment import SALIENT_THRESHOLD, clean_mask, enclosed_holes, group_cards
 
 HORIZON_RANGE = (0.15, 0.8)
 """The estimated horizon is kept within these fractions of the height, from the top."""
@@ -107,11 +107,7 @@ def close_notches(mask: np.ndarray, saliency: np.ndarray) -> np.ndarray:
     """mask with its narrow-mouthed notches and holes that ISNet found half-salient."""
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * NOTCH_MOUTH_PX + 1,) * 2)
     closed = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
-    count, labels = cv2.connectedComponents(1 - closed, connectivity=4)
-    open_to_border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0],
-                                               labels[:, -1]]))
-    enclosed = ~np.isin(labels, open_to_border[open_to_border > 0]) & (labels > 0)
-    added = (closed.astype(bool) | enclosed) & ~mask
+    added = (closed.astype(bool) | (enclosed_holes(closed)[0] > 0)) & ~mask
     count, labels = cv2.connectedComponents(added.astype(np.uint8), connectivity=8)
     if count <= 1:
         return mask
@@ -126,12 +122,7 @@ def stands_up(mask: np.ndarray) -> bool:
     """Whether a salient region (no detected object) can be an upright card: neither a frame
     enclosing much background nor a sparse lattice; without a card it keeps the ground plane
     and backdrop's depth, which never tears."""
-    outside = (~mask).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(outside, connectivity=4)
-    open_to_border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0],
-                                               labels[:, -1]]))
-    enclosed = int(stats[1:, cv2.CC_STAT_AREA].sum()
-                   - stats[open_to_border[open_to_border > 0], cv2.CC_STAT_AREA].sum())
+    enclosed = int(enclosed_holes(mask)[1].sum())
     area = int(mask.sum())
     hull = np.zeros(mask.shape, np.uint8)
     cv2.fillConvexPoly(hull, cv2.convexHull(cv2.findNonZero(mask.astype(np.uint8))), 1)
