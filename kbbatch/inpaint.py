@@ -591,8 +591,10 @@ def extend_at_view(
     # or depth is averaged with empty pixels.
     uncovered = (~rendering.covered).astype(np.float32)
     small_uncovered = cv2.resize(uncovered, small_size, interpolation=cv2.INTER_AREA) > 0
-    # Only the region is filled (no frame shows the rest); the rest is no source either.
-    small_region = cv2.resize(region.astype(np.uint8), small_size,
+    # Only the region is filled (no frame shows the rest); the rest is no source either. In
+    # floats: resized as uint8, a working pixel that a view pixel of the region only partly
+    # covers rounded to 0, and the hole pixels along the region's edge took infinite depth.
+    small_region = cv2.resize(region.astype(np.float32), small_size,
                               interpolation=cv2.INTER_AREA) > 0
     small_hole = small_uncovered & small_region
     small_depth = cv2.resize(rendering.depth, small_size, interpolation=cv2.INTER_NEAREST)
