@@ -15,7 +15,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from kbbatch.depth import DepthError
-from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
+from kbbatch.images import (
+    ImageReadError,
+    atomic_output,
+    broken_link_reason,
+    list_images,
+    read_image,
+)
 from kbbatch.manifest import Manifest, ManifestEntry
 from kbbatch.models import providers_used
 from kbbatch.outputs import (
@@ -92,6 +98,8 @@ class RunReport:
 
 REPORT_NAME = "kbbatch-report.json"
 PHOTO_KINDS = "jpg, jpeg, png, webp, tif, tiff, bmp"
+UNREAD_FORMAT_NOTE = ("a photo format kbbatch does not read; not rendered (convert it to one "
+                      f"of {PHOTO_KINDS})")
 
 
 class EmptyFolderError(ValueError):
@@ -119,6 +127,10 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
 
 
 SUBFOLDERS_NAMED = 5
+
+CONTACT_SHEET_NAME = "contact-sheet.png"
+"""`kbbatch plan`'s sheet of all previews, in the previews folder (a PNG: every preview is a
+.jpg, so no photo's preview takes its name)."""
 """An empty folder's error names this many of the subfolders it did not search."""
 
 
@@ -158,6 +170,9 @@ def run_folder(
         where = (f"; subfolders are not searched: {skipped}" + (f" and {more} more" if more > 0
                                                                  else "")
                  if scan.subfolders else "")
+        if scan.unread_formats:
+            names = ", ".join(path.name for path in scan.unread_formats[:SUBFOLDERS_NAMED])
+            where += f"; {names}: {UNREAD_FORMAT_NOTE}"
         raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
                                "written")
     check_writable(output_folder)
@@ -165,9 +180,10 @@ def run_folder(
     results: list[ClipResult] = []
     notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
              for sub in scan.subfolders]
+    notes += [f"{path}: {UNREAD_FORMAT_NOTE}" for path in scan.unread_formats]
     for link in scan.broken_links:
-        results.append(ClipResult(str(link), None, "failed", 0.0, error=f"{link}: broken "
-                                  f"symbolic link (its target {os.readlink(link)} is missing)"))
+        results.append(ClipResult(str(link), None, "failed", 0.0,
+                                  error=f"{link}: {broken_link_reason(link)}"))
     for path in scan.not_files:
         results.append(ClipResult(str(path), None, "failed", 0.0, error=f"{path}: is not a "
                                   "regular file (a named pipe, socket or device); not read"))
@@ -246,7 +262,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
     to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
     from kbbatch.fingerprint import file_sha256
-    from kbbatch.images import unreadable_reason
+    from kbbatch.images import depth_image_names, unreadable_reason
     from kbbatch.journal import JournalError, source_fingerprint
 
     try:
@@ -257,7 +273,8 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
-        name = journal.clip_name(source, content, preferred, output_folder)
+        name = journal.clip_name(source, content, preferred, output_folder,
+                                 depth_image_names(preferred) if options.save_depth else ())
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
             return ClipResult(str(source), str(output), "skipped", 0.0)
@@ -326,7 +343,6 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             message = f"{source}: {type(error).__name__}: {error}"
             results.append(PlanResult(str(source), "failed", error=message))
     write_manifest(manifest_path, entries)
-    if previews:
-        write_image(manifest_path.with_name(manifest_path.stem + "-contact.jpg"),
-                    contact_sheet(previews))
+    if previews:  # beside the previews: a sheet beside the photos became a clip of its own
+        write_image(preview_dir / CONTACT_SHEET_NAME, contact_sheet(previews))
     return results

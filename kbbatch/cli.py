@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -243,12 +244,18 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
 
     Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`.
     """
+    import shlex
+
+    render_options = _render_options(shared)
     preset = _preset(shared)
     options = _clip_options(shared)
     results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
     done = [r for r in results if r.status == "done"]
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
                f"{manifest_path.with_name(manifest_path.stem + '-previews')}")
+    # The manifest holds crops: the preset, duration and depth options are the command's.
+    click.echo("render them with: " + shlex.join(["kbbatch", str(folder), "--manifest",
+                                                 str(manifest_path), *render_options]))
     for result in results:
         if result.status != "done":
             click.echo(f"FAILED {result.error}", err=True)
@@ -279,10 +286,11 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
+    render_options = _render_options(shared)
     preset = _preset(shared)
     options = _clip_options(shared)
     try:
-        session = ReviewSession(folder, manifest_path, preset, options)
+        session = ReviewSession(folder, manifest_path, preset, options, render_options)
     except ManifestError as error:
         raise click.BadParameter(str(error), param_hint="--manifest") from error
     try:
@@ -303,6 +311,28 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         server.serve(ready)
     except KeyboardInterrupt:
         click.echo("stopped")
+
+
+def _render_options(shared: dict) -> tuple[str, ...]:
+    """The options of `preset_options` and `scene_options` given (not defaults), as a render
+    command repeats them: a preset file by its absolute path, since the command may be run
+    from another folder."""
+    arguments: list[str] = []
+    preset = shared["preset_name"]
+    if preset != "slideshow":
+        shipped = preset in builtin_names()
+        arguments += ["--preset", preset if shipped else str(Path(preset).absolute())]
+    for option, key in (("--duration", "duration"), ("--fps", "fps"),
+                        ("--depth-model", "depth_model")):
+        if shared[key] is not None:
+            arguments += [option, str(shared[key])]
+    for option, key in (("--planner", "planner"), ("--depth", "depth_backend")):
+        if shared[key] != "auto":
+            arguments += [option, shared[key]]
+    for option, key in (("--no-adjust", "no_adjust"), ("--no-refine", "no_refine")):
+        if shared[key]:
+            arguments.append(option)
+    return tuple(arguments)
 
 
 def _print_summary(report: RunReport) -> None:
@@ -375,6 +405,14 @@ def models_pull(name: str, sha256: str | None) -> None:
     click.echo(f"{name}: {path}")
 
 
+def _finite(param: click.Parameter, value: float) -> float:
+    """A number option's value, refused when NaN or infinite (click's ranges let NaN by)."""
+    if not math.isfinite(value):
+        raise click.BadParameter(f"must be a finite number of seconds, got {value}",
+                                 param=param)
+    return value
+
+
 @main.command()
 @click.argument("inbox", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--out", "outbox", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -389,7 +427,8 @@ def models_pull(name: str, sha256: str | None) -> None:
               f"{CORES_PER_JOB} cores and per {MEMORY_PER_JOB_GIB} GiB of memory, at least 1 "
               f"(here: {default_jobs()}); each worker renders with cores/jobs threads.")
 @click.option("--poll", is_flag=True, help="Poll the folder instead of inotify (network shares).")
-@click.option("--settle", "settle_s", type=float, default=2.0, show_default=True,
+@click.option("--settle", "settle_s", type=click.FloatRange(min=0), default=2.0,
+              show_default=True, callback=lambda ctx, param, value: _finite(param, value),
               help="Seconds a photo's size and time must stay unchanged before it is taken.")
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
 @executor_options
@@ -402,6 +441,8 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     from kbbatch.watch import watch as run_daemon
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    if inbox.resolve() == outbox.resolve():  # its lock is the output folder's: a busy error
+        raise click.UsageError(f"{outbox}: --out must be a folder other than the inbox")
     preset = _preset(shared)
     options = _clip_options(shared, save_depth=save_depth)
     _check_depth_beside_photos(save_depth, inbox, outbox)
@@ -419,10 +460,14 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
 @click.argument("outbox", type=click.Path(exists=True, file_okay=False, path_type=Path))
 def status(outbox: Path) -> None:
     """Counts and failures from the job journal in OUTBOX."""
-    from kbbatch.journal import JOURNAL_NAME
+    from kbbatch.journal import JOURNAL_NAME, JournalError
     from kbbatch.watch import status_lines
 
     if not (outbox / JOURNAL_NAME).is_file():
         raise click.ClickException(f"{outbox}: no job journal here ({JOURNAL_NAME})")
-    for line in status_lines(outbox):
+    try:
+        lines = status_lines(outbox)
+    except JournalError as error:  # damaged: said in one line, as render and watch say it
+        raise click.ClickException(str(error)) from error
+    for line in lines:
         click.echo(line)

@@ -6,11 +6,11 @@ The ffmpeg binary is the one on PATH, else the one shipped in the imageio-ffmpeg
 from __future__ import annotations
 
 import functools
-import os
 import re
 import shutil
 import signal
 import subprocess
+import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,12 +117,15 @@ def _check_encoder(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> N
 
 
 def encoder_refusal(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> str | None:
-    """Why ffmpeg fails to encode two tiny frames with these settings (None: it does not)."""
+    """Why ffmpeg fails to encode two tiny frames with these settings into an MP4 file, as a
+    clip is written (None: it does not). Into the null muxer, codecs that no MP4 holds (gif,
+    rawvideo) passed, and then every photo failed."""
     trial = Preset("trial", "", TRIAL_SIZE_PX, TRIAL_SIZE_PX, 25.0, 0.08, "linear", 1.0, "in",
                    0.0, codec, crf, pix_fmt, encoder_preset)
-    command = encoder_command(Path(os.devnull), trial, container="null")
     frames = np.zeros((2, TRIAL_SIZE_PX, TRIAL_SIZE_PX, 3), np.uint8)
-    result = subprocess.run(command, input=frames.tobytes(), capture_output=True)
+    with tempfile.TemporaryDirectory(prefix="kbbatch-encoder-check-") as folder:
+        command = encoder_command(Path(folder) / "trial.mp4", trial)
+        result = subprocess.run(command, input=frames.tobytes(), capture_output=True)
     if result.returncode == 0:
         return None
     return " ".join(result.stderr.decode(errors="replace").strip().splitlines()[:2])

@@ -6,6 +6,7 @@ arrays into files, and names the file in every error.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from contextlib import contextmanager
@@ -17,6 +18,11 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp"})
+
+UNREAD_PHOTO_SUFFIXES = frozenset({".heic", ".heif", ".avif", ".gif", ".jxl", ".dng", ".cr2",
+                                   ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2"})
+"""Photo formats kbbatch does not read (a phone's HEIC, a camera's raw files): said, not passed
+over in silence with an exit status of success."""
 
 MAX_SOURCE_PIXELS = 120_000_000
 """Larger images are decoded at a reduced size (JPEG) or refused, so memory stays bounded."""
@@ -46,6 +52,15 @@ class ImageReadError(Exception):
 DEPTH_PREVIEW_SUFFIX = ".depth-preview.png"
 """The coloured depth picture `--save-depth` writes beside a clip: never a photo to render."""
 
+SAVED_DISPARITY_SUFFIX = ".disparity.png"
+"""The 16-bit disparity map `--save-depth` writes beside a clip."""
+
+
+def depth_image_names(clip_name: str) -> tuple[str, str]:
+    """The files `--save-depth` writes beside a clip: its disparity map and depth picture."""
+    stem = Path(clip_name).stem
+    return stem + SAVED_DISPARITY_SUFFIX, stem + DEPTH_PREVIEW_SUFFIX
+
 
 def is_image_file(path: Path) -> bool:
     """Whether a file looks like a photo we should process (hidden and depth maps excluded)."""
@@ -72,17 +87,35 @@ class FolderScan:
     broken_links: list[Path]  # photo names whose symbolic link points nowhere
     subfolders: list[Path]  # not searched: one folder is one batch
     not_files: list[Path] = field(default_factory=list)  # a photo's name on a pipe, a device
+    unread_formats: list[Path] = field(default_factory=list)  # HEIC, raw: not read
+
+
+def broken_link_reason(link: Path) -> str:
+    """Why a symbolic link leads to no photo: its target is missing, or links loop."""
+    try:
+        link.resolve(strict=True)
+    except RuntimeError:  # Python 3.11 and 3.12 say a loop so
+        return "symbolic link in a loop (it leads back to itself)"
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            return "symbolic link in a loop (it leads back to itself)"
+    try:
+        return f"broken symbolic link (its target {os.readlink(link)} is missing)"
+    except OSError:  # replaced meanwhile
+        return "broken symbolic link"
 
 
 def entry_kind(path: Path) -> str | None:
     """What a folder entry is to a runner: "subfolder", "photo", or a photo's name on what
     cannot be read as one, "broken_link" or "not_file" (a named pipe, socket or device: reading
-    it would block); "gone" for a photo's name with nothing there now; None for anything else.
-    One answer for the batch's scan and the daemon's inbox."""
+    it would block); "gone" for a photo's name with nothing there now; "unread_format" for a
+    photo in a format not read (UNREAD_PHOTO_SUFFIXES); None for anything else. One answer for
+    the batch's scan and the daemon's inbox."""
     if path.is_dir():
         return "subfolder"
     if not is_image_file(path):
-        return None
+        unread = path.suffix.lower() in UNREAD_PHOTO_SUFFIXES and not path.name.startswith(".")
+        return "unread_format" if unread else None
     if path.is_file():
         return "photo"
     if path.is_symlink() and not path.exists():
@@ -94,13 +127,13 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     """Photos directly inside a folder in name order, and the broken links and subfolders that
     would otherwise be passed over without a word."""
     found: dict[str | None, list[Path]] = {"photo": [], "broken_link": [], "subfolder": [],
-                                           "not_file": []}
+                                           "not_file": [], "unread_format": []}
     for path in sorted(folder.iterdir()):
         if path.name.startswith(".") or path.name in ignore:
             continue
         found.setdefault(entry_kind(path), []).append(path)
     return FolderScan(found["photo"], found["broken_link"], found["subfolder"],
-                      found["not_file"])
+                      found["not_file"], found["unread_format"])
 
 
 TRUNCATED_JPEG_ROWS = 16

@@ -202,22 +202,26 @@ class Journal:
             return False
         return job.fingerprint == fingerprint and job.settings == settings and job.clip == clip
 
-    def clip_name(self, source: Path, content: str, preferred: str, folder: Path) -> str:
+    def clip_name(self, source: Path, content: str, preferred: str, folder: Path,
+                  companions: tuple[str, ...] = ()) -> str:
         """The clip's file name: `preferred` unless a clip of another photo has (or is about
-        to have) it; then the photo's stem and the start of its sha256. One rule for the batch
-        and the daemon, so no clip of one photo ever replaces a clip of another."""
-        if self._is_free(preferred, source, content, folder):
+        to have) it, or a file kbbatch did not write has it or one of its companions' names
+        (the depth images written beside it); then the photo's stem and the start of its
+        sha256. One rule for the batch and the daemon, so no clip of one photo ever replaces
+        a clip of another, nor a file of the user's."""
+        if self._is_free(preferred, source, content, folder, companions):
             return preferred
         return f"{Path(source).stem}.{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}"
 
-    def _is_free(self, name: str, source: Path, content: str, folder: Path) -> bool:
+    def _is_free(self, name: str, source: Path, content: str, folder: Path,
+                 companions: tuple[str, ...]) -> bool:
         owners = sorted(self.owners(name), key=lambda job: job.updated)
         latest = owners[-1] if owners else None
         if latest is not None and (latest.source == str(source) or latest.content == content
                                    or latest.source == Path(source).name):
             return True  # this photo's own clip (re-rendered, the folder moved, or a journal
             # of an earlier version, which keyed jobs by file name)
-        if (folder / name).exists():
+        if any((folder / file).exists() for file in (name, *companions)):
             return False  # another photo's clip, or a file kbbatch did not write
         return latest is None or latest.state != "running"
 

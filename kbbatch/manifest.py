@@ -6,8 +6,10 @@ the image and the field.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import unicodedata
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -78,18 +80,33 @@ def _describe(crop: Crop) -> str:
             f"{crop.bottom_px:.0f}]")
 
 
+def _normal(name: str) -> str:
+    """A file name in Unicode's composed form: `café.jpg` typed (composed) in a manifest names
+    the photo a Mac wrote decomposed; the two look the same and are different strings."""
+    return unicodedata.normalize("NFC", name)
+
+
 @dataclass(frozen=True)
 class Manifest:
     path: Path
     entries: dict[str, ManifestEntry]
+    normal_entries: dict[str, ManifestEntry] = dataclasses.field(init=False, repr=False,
+                                                                 compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "normal_entries",
+                           {_normal(name): entry for name, entry in self.entries.items()})
 
     def entry(self, image_name: str) -> ManifestEntry | None:
-        return self.entries.get(image_name)
+        found = self.entries.get(image_name)
+        return found if found is not None else self.normal_entries.get(_normal(image_name))
 
     def unmatched_images(self, photo_names: set[str]) -> list[str]:
         """Keys that name none of the folder's photos (entries apply by plain file name: a
         key with a folder, or naming a file that is not a photo, would be silently unused)."""
-        return sorted(name for name in self.entries if name not in photo_names)
+        normal_names = {_normal(name) for name in photo_names}
+        return sorted(name for name in self.entries
+                      if name not in photo_names and _normal(name) not in normal_names)
 
 
 def schema() -> dict[str, Any]:

@@ -3,19 +3,31 @@
 from __future__ import annotations
 
 import tempfile
+from collections import Counter
 from pathlib import Path
 
 from kbbatch.pipeline import CLIP_SUFFIX
 
 
 def output_names(sources: list[Path]) -> dict[Path, str]:
-    """Clip file names: the photo's stem, or its full name where two photos share a stem."""
-    stems: dict[str, int] = {}
-    for source in sources:
-        stems[source.stem.lower()] = stems.get(source.stem.lower(), 0) + 1
-    return {
-        s: (s.stem if stems[s.stem.lower()] == 1 else s.name) + CLIP_SUFFIX for s in sources
-    }
+    """Clip file names, distinct (ignoring case): the photo's stem, or its full name where two
+    photos share a stem or a stem is another photo's full name (x.jpg beside x.jpg.png), and
+    a number after names that differ only in case."""
+    chosen = {s: s.stem for s in sources}
+    while True:
+        counts = Counter(name.lower() for name in chosen.values())
+        clashing = [s for s in sources if counts[chosen[s].lower()] > 1 and chosen[s] != s.name]
+        if not clashing:
+            break
+        for source in clashing:
+            chosen[source] = source.name
+    seen: Counter[str] = Counter()
+    names = {}
+    for source in sorted(sources):
+        seen[chosen[source].lower()] += 1
+        number = seen[chosen[source].lower()]
+        names[source] = chosen[source] + (f".{number}" if number > 1 else "") + CLIP_SUFFIX
+    return names
 
 
 class OutputFolderError(OSError):

@@ -497,13 +497,13 @@ def prefetched(items: Iterator, ahead: int) -> Iterator:
 
 def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
-    from kbbatch.images import DEPTH_PREVIEW_SUFFIX, write_image
+    from kbbatch.images import depth_image_names, write_image
     from kbbatch.review import depth_picture, normalised_disparity
 
-    stem = clip_path.with_suffix("")
-    write_image(stem.with_name(stem.name + ".disparity.png"),
+    map_name, picture_name = depth_image_names(clip_path.name)
+    write_image(clip_path.with_name(map_name),
                 (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
-    write_image(stem.with_name(stem.name + DEPTH_PREVIEW_SUFFIX), depth_picture(disparity))
+    write_image(clip_path.with_name(picture_name), depth_picture(disparity))
 
 
 def plan_summary(plan: Plan, to_photo: float) -> dict:
@@ -521,7 +521,7 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
     data = entry.data
     try:
         if "preset" in data:
-            preset = load_preset(data["preset"])
+            preset = load_preset(data["preset"], relative_to=entry.manifest.parent)
         preset = with_overrides(preset, duration_s=data.get("duration_s"))
     except PresetError as error:
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
@@ -600,6 +600,10 @@ def clip_fingerprint(source: Path, content: str, preset: Preset, options: ClipOp
     depth file named for the photo cannot be read."""
     from kbbatch.fingerprint import clip_inputs
 
+    # The entry's own preset file is an input too: an edit to it makes a new clip. A bad
+    # entry is make_clip's to report (the clip fails and is not skipped).
+    with contextlib.suppress(ManifestError):
+        preset, options = apply_entry(entry, preset, options)
     settings = (asdict(preset), options.planner, entry.data if entry else None)
     return clip_inputs(source, content, entry_depth(entry, options.depth), settings).digest
 

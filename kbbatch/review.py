@@ -30,7 +30,10 @@ def draw_plan(image: np.ndarray, plan: Plan, label: str) -> np.ndarray:
     start = (round(plan.start.center_x_px), round(plan.start.center_y_px))
     end = (round(plan.end.center_x_px), round(plan.end.center_y_px))
     cv2.arrowedLine(canvas, start, end, (255, 255, 255), thickness, cv2.LINE_AA, tipLength=0.3)
-    cv2.putText(canvas, label, (10, 10 + 12 * thickness), cv2.FONT_HERSHEY_SIMPLEX,
+    # OpenCV's fonts draw printable ASCII only, and a name that is not UTF-8 (a surrogate
+    # escape) crashed the process inside putText: every other character shows as '?'.
+    printable = "".join(c if " " <= c <= "~" else "?" for c in label)
+    cv2.putText(canvas, printable, (10, 10 + 12 * thickness), cv2.FONT_HERSHEY_SIMPLEX,
                 0.4 * thickness, (255, 255, 255), thickness, cv2.LINE_AA)
     return canvas
 

@@ -30,6 +30,8 @@ from kbbatch import models
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
     atomic_output,
+    broken_link_reason,
+    depth_image_names,
     entry_kind,
     is_image_file,
     scan_folder,
@@ -85,8 +87,10 @@ def is_candidate(path: Path) -> bool:
 
 UNUSABLE_ENTRIES = {
     "subfolder": "subfolders are not watched; move its photos into the inbox",
-    "broken_link": "broken symbolic link, its target is missing",
+    "broken_link": "broken symbolic link (or links in a loop)",  # said by broken_link_reason
     "not_file": "not a regular file (a named pipe, socket or device); not read",
+    "unread_format": "a photo format kbbatch does not read; left in the inbox (convert it to "
+                     "JPEG, PNG, WebP, TIFF or BMP)",
 }
 """What the log says, once, of an inbox entry that is no photo to take (images.entry_kind)."""
 
@@ -150,10 +154,22 @@ def unique_destination(folder: Path, name: str) -> Path:
     candidate = folder / name
     stem, suffix = Path(name).stem, Path(name).suffix
     counter = 1
-    while candidate.exists():
+    while os.path.lexists(candidate):  # a broken link there is a file not to replace too
         candidate = folder / f"{stem}.{counter}{suffix}"
         counter += 1
     return candidate
+
+
+def move_photo(path: Path, destination: Path) -> None:
+    """Move a photo; a relative symbolic link is made again to point from its new folder at
+    the same file (moved as it was, `../photos/x.jpg` led nowhere from done/)."""
+    target = os.readlink(path) if path.is_symlink() else None
+    if target is None or os.path.isabs(target):
+        shutil.move(str(path), destination)
+        return
+    os.symlink(os.path.relpath(os.path.join(path.parent, target), destination.parent),
+               destination)
+    path.unlink()
 
 
 def folder_is_writable(folder: Path) -> bool:
@@ -254,7 +270,8 @@ class InboxTracker:
         if kind in UNUSABLE_ENTRIES:
             if path not in self.mentioned:
                 self.mentioned.add(path)
-                log.warning("%s: %s", path, UNUSABLE_ENTRIES[kind])
+                log.warning("%s: %s", path, broken_link_reason(path) if kind == "broken_link"
+                            else UNUSABLE_ENTRIES[kind])
             return False
         return is_candidate(path)
 
@@ -329,6 +346,12 @@ class JobRunner:
                 continue
             renamed = inbox.arrivals[path].renamed
             entry = s.manifest.entry(path.name) if s.manifest else None
+            if entry is not None and entry.excluded:  # as the batch does: not rendered
+                inbox.forget(path)
+                if path not in inbox.mentioned:
+                    inbox.mentioned.add(path)
+                    log.info("%s: excluded by the manifest; left in the inbox", path.name)
+                continue
             try:
                 fingerprint = source_fingerprint(path)
                 content = file_sha256(path)
@@ -340,7 +363,9 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
-            name = self.journal.clip_name(path, content, preferred, s.outbox)
+            name = self.journal.clip_name(
+                path, content, preferred, s.outbox,
+                depth_image_names(preferred) if options.save_depth else ())
             output = s.outbox / name
             if self.journal.is_up_to_date(path, fingerprint, settings, output):
                 inbox.forget(path)
@@ -525,7 +550,7 @@ class JobRunner:
             return None
         destination = unique_destination(self.settings.inbox / folder, path.name)
         try:
-            shutil.move(str(path), destination)
+            move_photo(path, destination)
         except OSError as error:
             log.error("%s: cannot be moved to %s/ (%s); it stays in the inbox", path, folder,
                       error.strerror or error)

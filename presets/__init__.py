@@ -113,10 +113,23 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
     path = Path(name_or_path)
     if relative_to is not None and not path.is_absolute():
         path = relative_to / path
-    if path.suffix == ".toml" or path.exists():
+    # A shipped preset's bare name means that preset, whatever the current folder holds (an
+    # output folder named after its preset, `-o preview --preset preview`, shadowed it on
+    # the second run); a file of that name is given as ./preview.toml.
+    shipped_name = name_or_path in builtin_names()
+    if not shipped_name and (path.suffix == ".toml" or path.exists()):
         if not path.is_file():
-            raise PresetError(f"{path}: preset file not found")
-        text = path.read_text(encoding="utf-8")
+            reason = ("a folder, not a preset file" if path.is_dir()
+                      else "not a regular file (a device or pipe)" if path.exists()
+                      else "preset file not found")
+            raise PresetError(f"{path}: {reason}")
+        try:
+            text = path.read_text(encoding="utf-8-sig")  # a BOM, as manifests allow
+        except UnicodeDecodeError as error:
+            raise PresetError(f"{path}: not a UTF-8 text file (byte {error.start}); TOML "
+                              "files are UTF-8") from error
+        except OSError as error:
+            raise PresetError(f"{path}: cannot be read ({error.strerror or error})") from error
         source, stem, folder = str(path), path.stem, path.parent
     else:
         resource = resources.files(__name__) / f"{name_or_path}.toml"
@@ -142,11 +155,12 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
     return base_data | data, source
 
 
-def load_preset(name_or_path: str) -> Preset:
-    """A shipped preset by name, or a TOML file by path, checked against ffmpeg."""
+def load_preset(name_or_path: str, relative_to: Path | None = None) -> Preset:
+    """A shipped preset by name, or a TOML file by path (relative to relative_to when given,
+    as a manifest's entries are), checked against ffmpeg."""
     from kbbatch.encode import EncoderError, check_encoder
 
-    data, source = _read(name_or_path, None, ())
+    data, source = _read(name_or_path, relative_to, ())
     preset = preset_from_mapping(data, source)
     try:
         check_encoder(preset)

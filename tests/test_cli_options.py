@@ -42,3 +42,94 @@ def test_the_batch_and_the_daemon_take_the_same_ray_options(command, tmp_path):
                                                    else [])
     assert command.make_context("kbbatch", [*args, "--ray-shared-fs"]).params["ray_shared_fs"]
     assert not command.make_context("kbbatch", args).params["ray_shared_fs"]  # copies by default
+
+
+def test_review_shows_a_render_command_that_repeats_its_preset_file_and_options(
+        tmp_path, monkeypatch):
+    """The page's command named a preset file by its stem (an unknown preset to render) and
+    dropped --duration, --planner and --depth: what rendered was not what was reviewed."""
+    import shlex
+
+    from kbbatch.pipeline import ClipOptions
+    from kbbatch.presets import load_preset
+    from kbbatch.web.app import ReviewSession
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.toml").write_text('base = "preview"\ncrf = 30\n')
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text('{"version": 1, "images": {}}')
+    given = ["--preset", "mine.toml", "--duration", "1.5", "--planner", "center",
+             "--depth", "ramp", "--no-refine"]
+    review = cli.review.make_context("kbbatch", [str(photos), "--manifest", str(manifest),
+                                                 *given])
+    session = ReviewSession(photos, manifest, load_preset("mine.toml"), ClipOptions(),
+                            cli._render_options(dict(review.params)))
+    program, *arguments = shlex.split(session.render_command())
+    monkeypatch.chdir("/")  # the command is run from anywhere
+    render = cli.render.make_context(program, arguments).params
+    assert load_preset(render["preset_name"]).crf == 30
+    assert (render["duration"], render["planner"], render["depth_backend"],
+            render["no_refine"]) == (1.5, "center", "ramp", True)
+    plain = cli.review.make_context("kbbatch", [str(photos), "--manifest", str(manifest)])
+    assert cli._render_options(dict(plain.params)) == ()
+
+
+def test_status_on_a_damaged_journal_says_so_in_one_line(tmp_path):
+    from click.testing import CliRunner
+
+    from kbbatch.journal import JOURNAL_NAME
+
+    (tmp_path / JOURNAL_NAME).write_bytes(b"\x13garbage, not a database" * 700)
+    result = CliRunner().invoke(cli.main, ["status", str(tmp_path)])
+    assert result.exit_code == 1
+    assert isinstance(result.exception, SystemExit)  # an error message, not a traceback
+    assert result.output.startswith("Error: ") and JOURNAL_NAME in result.output
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--settle", "nan"], "must be a finite number of seconds"),
+    (["--settle", "inf"], "must be a finite number of seconds"),
+    (["--settle", "-1"], "not in the range"),
+])
+def test_watch_refuses_a_settle_time_it_could_never_wait_out(tmp_path, arguments, message):
+    from click.testing import CliRunner
+
+    result = CliRunner().invoke(cli.main, ["watch", str(tmp_path / "in"), "--out",
+                                           str(tmp_path / "out"), *arguments])
+    assert result.exit_code == 2 and message in result.output
+
+
+def test_watch_refuses_its_inbox_as_the_output_folder(tmp_path):
+    """It said another kbbatch held the folder (its own inbox lock), which none did."""
+    from click.testing import CliRunner
+
+    result = CliRunner().invoke(cli.main, ["watch", str(tmp_path), "--out", str(tmp_path)])
+    assert result.exit_code == 2
+    assert "--out must be a folder other than the inbox" in result.output
+    assert "another kbbatch" not in result.output
+
+
+def test_plan_prints_the_render_command_that_repeats_its_options(tmp_path):
+    """A manifest holds crops only: `plan --duration 1.5` wrote nothing of the duration, and
+    the render that followed used the preset's."""
+    import shlex
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from .conftest import textured_image
+
+    (tmp_path / "photos").mkdir()
+    Image.fromarray(textured_image(180, 320)).save(tmp_path / "photos" / "a.jpg")
+    manifest = tmp_path / "m.json"
+    result = CliRunner().invoke(cli.main, ["plan", str(tmp_path / "photos"), "-o", str(manifest),
+                                           "--preset", "preview", "--duration", "1.5",
+                                           "--depth", "ramp", "--quiet"])
+    assert result.exit_code == 0, result.output
+    [line] = [line for line in result.output.splitlines() if line.startswith("render them")]
+    program, *arguments = shlex.split(line.removeprefix("render them with: "))
+    render = cli.render.make_context(program, arguments).params
+    assert (render["preset_name"], render["duration"], render["depth_backend"]) == (
+        "preview", 1.5, "ramp")

@@ -101,6 +101,60 @@ def test_a_second_card_with_the_same_names_never_replaces_a_clip(tmp_path, quick
     assert visible_clips(out) == clips
 
 
+def test_saved_depth_never_replaces_a_file_kbbatch_did_not_write(tmp_path, quick_preset):
+    """A camera card's folder used as the output of another card: its own IMG_1.disparity.png
+    (made by the user) was silently replaced by the other photo's map."""
+    from dataclasses import replace
+
+    out = tmp_path / "cardA"
+    photo(out / "IMG_1.jpg", seed=1)
+    (out / "IMG_1.disparity.png").write_bytes(b"the user's own map")
+    photo(tmp_path / "cardB" / "IMG_1.jpg", seed=2)
+    options = replace(FAST, save_depth=True)
+    [result] = run_folder(tmp_path / "cardB", out, quick_preset, options, False).results
+    assert result.status == "done" and "named by its content" in result.note
+    assert (out / "IMG_1.disparity.png").read_bytes() == b"the user's own map"
+    clip = Path(result.output)
+    assert clip.name != "IMG_1.mp4"
+    assert (out / (clip.stem + ".disparity.png")).is_file()
+    assert (out / (clip.stem + ".depth-preview.png")).is_file()
+    # Its own maps it replaces, under the same name.
+    again = run_folder(tmp_path / "cardB", out, quick_preset, options, False, force=True)
+    assert [r.output for r in again.results] == [str(clip)]
+
+
+def test_a_manifest_entrys_preset_file_is_found_beside_the_manifest_and_is_an_input(
+        tmp_path, quick_preset, monkeypatch):
+    """Found from the current folder, the same manifest worked or failed by where it was run
+    (a daemon under systemd runs from /); and an edit to that file left the clip stale."""
+    import cv2
+
+    from kbbatch.manifest import load_manifest
+
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    (tmp_path / "m").mkdir()
+    look = tmp_path / "m" / "look.toml"
+    look.write_text('base = "preview"\nwidth_px = 320\nheight_px = 180\nfps = 10\n'
+                    'duration_s = 0.5\n')
+    manifest_path = tmp_path / "m" / "manifest.json"
+    manifest_path.write_text('{"version": 1, "images": {"a.jpg": {"preset": "look.toml"}}}')
+    monkeypatch.chdir("/")
+
+    def render() -> list[str]:
+        report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False,
+                            manifest=load_manifest(manifest_path))
+        return [r.status for r in report.results]
+
+    assert render() == ["done"]
+    assert render() == ["skipped"]
+    look.write_text(look.read_text().replace("width_px = 320\nheight_px = 180",
+                                             "width_px = 384\nheight_px = 216"))
+    assert render() == ["done"]
+    capture = cv2.VideoCapture(str(tmp_path / "out" / "a.mp4"))
+    assert capture.get(cv2.CAP_PROP_FRAME_WIDTH) == 384
+    capture.release()
+
+
 def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):
     path = photo(tmp_path / "in" / "a.jpg", seed=1)
     run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
@@ -293,11 +347,27 @@ def test_plan_previews_of_same_stem_photos_do_not_collide(tmp_path, quick_preset
     photo(tmp_path / "in" / "a.jpg", seed=1)
     photo(tmp_path / "in" / "a.png", seed=2)
     photo(tmp_path / "in" / "b.jpg", seed=3)
+    photo(tmp_path / "in" / "a.jpg.png", seed=4)  # its stem is the first one's name
     results = plan_folder(tmp_path / "in", tmp_path / "plans" / "manifest.json", quick_preset,
                           FAST, False)
-    assert [r.status for r in results] == ["done"] * 3
+    assert [r.status for r in results] == ["done"] * 4
     previews = sorted(p.name for p in (tmp_path / "plans" / "manifest-previews").iterdir())
-    assert previews == ["a.jpg.jpg", "a.png.jpg", "b.jpg"]
+    assert previews == ["a.jpg.jpg", "a.jpg.png.jpg", "a.png.jpg", "b.jpg", "contact-sheet.png"]
+
+
+def test_plan_beside_the_photos_adds_no_photo_and_survives_a_name_that_is_not_utf8(
+        tmp_path, quick_preset):
+    """A name that is not UTF-8 crashed the whole plan run inside OpenCV's putText (no
+    manifest); the contact sheet written beside a manifest in the photo folder became a clip
+    of its own on the next render."""
+    folder = tmp_path / "photos"
+    odd = photo(folder / os.fsdecode(b"caf\xe9.jpg"), seed=1)
+    photo(folder / "b.jpg", seed=2)
+    manifest = folder / "manifest.json"
+    results = plan_folder(folder, manifest, quick_preset, FAST, False)
+    assert [r.status for r in results] == ["done", "done"]
+    assert odd.name in json.loads(manifest.read_text())["images"]
+    assert sorted(p.name for p in batch.list_images(folder)) == sorted([odd.name, "b.jpg"])
 
 
 # --- 10: truncated clips, links, subfolders, empty folders, logs -----------------------------
@@ -318,13 +388,22 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     (folder / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
     photo(folder / "more" / "b.jpg", seed=2)
     os.mkfifo(folder / "pipe.jpg")  # read, it would block the batch for good
+    (folder / "loop1.jpg").symlink_to("loop2.jpg")  # each target exists: it is the other
+    (folder / "IMG_0002.heic").write_bytes(b"ftypheic")  # a phone's photo, not read
+    (folder / "notes.txt").write_text("not a photo at all")
+    (folder / "loop2.jpg").symlink_to("loop1.jpg")
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
     by_name = {Path(r.source).name: r for r in report.results}
     assert by_name["a.jpg"].status == "done"
     assert "pipe.jpg: is not a regular file" in by_name["pipe.jpg"].error
     assert by_name["gone.jpg"].status == "failed"
-    assert "broken symbolic link" in by_name["gone.jpg"].error
+    assert "broken symbolic link (its target" in by_name["gone.jpg"].error
+    for name in ("loop1.jpg", "loop2.jpg"):
+        assert by_name[name].status == "failed"
+        assert "symbolic link in a loop" in by_name[name].error
     assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
+    assert [note for note in report.notes if "format kbbatch does not read" in note] == [
+        f"{folder / 'IMG_0002.heic'}: {batch.UNREAD_FORMAT_NOTE}"]
 
 
 def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):
@@ -340,6 +419,13 @@ def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):
                          capture_output=True, text=True)
     assert run.returncode == 3, run.stderr
     assert "subfolders are not searched: 2024-card-a" in run.stderr
+    # a phone's photos only: said as such, not "no photos" alone
+    (tmp_path / "phone").mkdir()
+    (tmp_path / "phone" / "IMG_0001.HEIC").write_bytes(b"ftypheic")
+    run = subprocess.run([*CLI, str(tmp_path / "phone"), "-o", str(tmp_path / "out")],
+                         capture_output=True, text=True)
+    assert run.returncode == 3, run.stderr
+    assert "IMG_0001.HEIC: a photo format kbbatch does not read" in run.stderr
 
 
 def test_progress_into_a_log_has_no_zero_lines_or_escape_codes(tmp_path):

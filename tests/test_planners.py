@@ -196,6 +196,21 @@ def test_a_manifest_that_is_not_utf8_is_a_clear_error_and_a_bom_is_fine(tmp_path
     assert load_manifest(tmp_path / "bom.json").entry("a.jpg") is not None
 
 
+def test_a_manifest_key_names_its_photo_in_either_unicode_form(tmp_path):
+    """`café.jpg` typed in a manifest (composed) and the photo a Mac wrote (decomposed) look
+    the same: the entry was unused and the key reported as naming no photo."""
+    import unicodedata
+
+    composed = unicodedata.normalize("NFC", "café.jpg")
+    decomposed = unicodedata.normalize("NFD", composed)
+    assert composed != decomposed
+    manifest = load_manifest(write(tmp_path / "m.json",
+                                   {"images": {composed: {"planner": "center"}}}))
+    assert manifest.entry(decomposed) is manifest.entry(composed) is not None
+    assert manifest.unmatched_images({decomposed}) == []
+    assert manifest.unmatched_images({"other.jpg"}) == [composed]
+
+
 def test_crop_outside_the_photo_is_refused(tmp_path):
     path = write(tmp_path / "m.json", {"images": {"a.jpg": {
         "units": "px", "start": {"center_x": 100, "center_y": 100, "width": 400},
@@ -214,7 +229,7 @@ def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
     options = ClipOptions(planner="auto", threads=2)
     [planned] = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
     assert planned.status == "done"
-    assert (tmp_path / "plan" / "manifest-contact.jpg").is_file()
+    assert (tmp_path / "plan" / "manifest-previews" / "contact-sheet.png").is_file()
     assert (tmp_path / "plan" / "manifest-previews" / f"{photo.stem}.jpg").is_file()
     # A person edits the end crop, then renders with the manifest.
     data = json.loads(manifest_path.read_text())

@@ -144,3 +144,36 @@ def test_nvenc_without_an_nvidia_gpu_blames_the_codec_at_load(tmp_path):
                                           r"h264_nvenc with codec 'h264_nvenc': .*needs an "
                                           r"NVIDIA GPU and its driver"):
         load_preset(path)
+
+
+def test_a_shipped_name_means_the_shipped_preset_whatever_the_current_folder_holds(
+        tmp_path, monkeypatch):
+    """`kbbatch photos -o preview --preset preview` worked once; the second run took the new
+    output folder for a preset file and failed (a file named 4k did the same)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "preview").mkdir()
+    (tmp_path / "4k").write_text("not toml at all\n")
+    shipped = tomllib.loads(resources.files("kbbatch.presets").joinpath("preview.toml")
+                            .read_text())
+    assert load_preset("preview").width_px == shipped["width_px"]
+    assert load_preset("4k").name == "4k"
+    with pytest.raises(PresetError, match="a folder, not a preset file"):
+        load_preset("preview/")
+
+
+def test_a_preset_file_in_another_encoding_is_refused_by_name_and_a_bom_is_read(tmp_path):
+    utf16 = tmp_path / "utf16.toml"
+    utf16.write_text('base = "preview"\n', encoding="utf-16")
+    with pytest.raises(PresetError, match=r"utf16\.toml: not a UTF-8 text file"):
+        load_preset(str(utf16))
+    bom = tmp_path / "bom.toml"
+    bom.write_text('base = "preview"\ncrf = 30\n', encoding="utf-8-sig")
+    assert load_preset(str(bom)).crf == 30
+
+
+@pytest.mark.parametrize("codec", ["rawvideo", "gif"])
+def test_a_codec_no_mp4_holds_fails_when_the_preset_loads_not_at_every_photo(tmp_path, codec):
+    path = write(tmp_path / f"{codec}.toml", f'base = "preview"\ncodec = "{codec}"\n'
+                 + ('pix_fmt = "rgb8"\n' if codec == "gif" else ""))
+    with pytest.raises(PresetError, match=rf"{codec}\.toml: setting 'codec'.*container"):
+        load_preset(path)

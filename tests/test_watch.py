@@ -254,3 +254,31 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
         assert stop(daemon) == 0
     assert clips_in(outbox) == ["a.mp4"]
     assert (inbox / "done" / "a.jpg").is_file()
+
+
+def test_a_photo_the_manifest_excludes_is_left_in_the_inbox_unrendered(tmp_path):
+    """`"exclude": true` left a photo out of the batch, but the daemon rendered it."""
+    from PIL import Image
+
+    from .conftest import textured_image
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    for seed, name in enumerate(("a.jpg", "b.jpg")):
+        Image.fromarray(textured_image(180, 320, seed=seed)).save(inbox / name)
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text('{"version": 1, "images": {"b.jpg": {"exclude": true}}}')
+    log_path = tmp_path / "daemon.log"
+    daemon = start_daemon(inbox, outbox, preset_file(tmp_path, 0.4), "--manifest",
+                          str(manifest), log_path=log_path)
+    try:
+        wait_for(lambda: clips_in(outbox) == ["a.mp4"]
+                 and "b.jpg: excluded by the manifest" in log_path.read_text(), 120,
+                 "a's clip and b's exclusion in the log")
+        time.sleep(2.5)  # more than the settle time: b is not taken later either
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4"]
+    assert (inbox / "b.jpg").is_file() and (inbox / "done" / "a.jpg").is_file()
+    assert log_path.read_text().count("b.jpg: excluded by the manifest") == 1

@@ -174,18 +174,21 @@ def test_subfolders_and_broken_links_in_the_inbox_are_logged(tmp_path):
     (inbox / "holiday").mkdir()
     (inbox / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
     os.mkfifo(inbox / "pipe.jpg")  # read, it would block a worker for good
+    (inbox / "phone.heic").write_bytes(b"ftypheic")
     Image.fromarray(textured_image(180, 320)).save(inbox / "after.jpg")
     daemon = start_daemon(inbox, outbox, preset)
     try:
         wait_for(lambda: "holiday: subfolders are not watched" in daemon_log(tmp_path)
                  and "gone.jpg: broken symbolic link" in daemon_log(tmp_path)
-                 and "pipe.jpg: not a regular file" in daemon_log(tmp_path), 120,
-                 "the three warnings")
+                 and "pipe.jpg: not a regular file" in daemon_log(tmp_path)
+                 and "phone.heic: a photo format kbbatch does not read" in daemon_log(tmp_path),
+                 120, "the four warnings")
         wait_for(lambda: clips_in(outbox) == ["after.mp4"], 120, "the photo after the pipe")
     finally:
         assert stop(daemon) == 0
     assert "ERROR" not in daemon_log(tmp_path)
-    assert sorted(p.name for p in inbox.iterdir()) == ["done", "gone.jpg", "holiday", "pipe.jpg"]
+    assert sorted(p.name for p in inbox.iterdir()) == ["done", "gone.jpg", "holiday",
+                                                      "phone.heic", "pipe.jpg"]
 
 
 def test_sigterm_logs_no_error(tmp_path):
@@ -433,3 +436,26 @@ def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_th
     assert by_output[second_name].content == hashlib.sha256(second).hexdigest()
     assert (inbox / "done" / "a.jpg").read_bytes() == second
     assert "replaced by another photo" in log
+
+
+def test_a_linked_photo_moved_to_done_still_leads_to_its_file(tmp_path):
+    """A relative link (`inbox/x.jpg -> ../photos/x.jpg`) moved into done/ as it was led
+    nowhere; an absolute one moves as it is; a broken link in done/ is not replaced."""
+    from kbbatch.watch import move_photo, unique_destination
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "x.jpg").write_bytes(b"the photo")
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    (inbox / "rel.jpg").symlink_to("../photos/x.jpg")
+    (inbox / "abs.jpg").symlink_to(photos / "x.jpg")
+    (inbox / "done").mkdir()
+    (inbox / "done" / "rel.jpg").symlink_to("nowhere.jpg")  # an earlier photo's broken link
+    for name in ("rel.jpg", "abs.jpg"):
+        destination = unique_destination(inbox / "done", name)
+        move_photo(inbox / name, destination)
+        assert not os.path.lexists(inbox / name)
+        assert destination.read_bytes() == b"the photo", name
+    assert os.readlink(inbox / "done" / "rel.jpg") == "nowhere.jpg"
+    assert (inbox / "done" / "rel.1.jpg").resolve() == (photos / "x.jpg").resolve()

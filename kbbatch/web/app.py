@@ -93,12 +93,15 @@ def _digest(settings: dict[str, Any]) -> str:
 class ReviewSession:
     """The folder, the manifest being edited, the plans and previews, for one server run."""
 
-    def __init__(self, folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions
-                 ) -> None:
+    def __init__(self, folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
+                 render_options: tuple[str, ...] = ()) -> None:
+        """render_options: the command-line options (preset, overrides, planner, depth) the
+        page was started with, which the render command it shows must repeat."""
         self.folder = Path(folder).resolve()
         self.manifest_path = Path(manifest_path).absolute()
         self.preset = preset
         self.options = options
+        self.render_options = render_options
         self.token = secrets.token_urlsafe(32)
         self.entries = self._manifest_on_disk()
         # Only files that really lie inside the folder: a symlink pointing out is not served.
@@ -122,9 +125,7 @@ class ReviewSession:
 
     def render_command(self) -> str:
         command = ["kbbatch", str(self.folder), "--manifest", str(self.manifest_path)]
-        if self.preset.name != "slideshow":
-            command += ["--preset", self.preset.name]
-        return shlex.join(command)
+        return shlex.join([*command, *self.render_options])
 
     def save(self, changes: Any) -> dict[str, Any]:
         """Apply the page's changed entries (None removes one) to the manifest on disk.
