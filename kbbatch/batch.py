@@ -16,6 +16,7 @@ from pathlib import Path
 
 from kbbatch.depth import DepthError
 from kbbatch.images import (
+    UNREAD_FORMAT_REASON,
     ImageReadError,
     atomic_output,
     broken_link_reason,
@@ -98,8 +99,6 @@ class RunReport:
 
 REPORT_NAME = "kbbatch-report.json"
 PHOTO_KINDS = "jpg, jpeg, png, webp, tif, tiff, bmp"
-UNREAD_FORMAT_NOTE = ("a photo format kbbatch does not read; not rendered (convert it to one "
-                      f"of {PHOTO_KINDS})")
 
 
 class EmptyFolderError(ValueError):
@@ -127,11 +126,19 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
 
 
 SUBFOLDERS_NAMED = 5
+"""An empty folder's error names this many of the subfolders (or unread photos) it did not
+search."""
 
 CONTACT_SHEET_NAME = "contact-sheet.png"
 """`kbbatch plan`'s sheet of all previews, in the previews folder (a PNG: every preview is a
 .jpg, so no photo's preview takes its name)."""
-"""An empty folder's error names this many of the subfolders it did not search."""
+
+
+def _some(paths: list[Path]) -> str:
+    """The first SUBFOLDERS_NAMED names, and how many more."""
+    more = len(paths) - SUBFOLDERS_NAMED
+    return (", ".join(path.name for path in paths[:SUBFOLDERS_NAMED])
+            + (f" and {more} more" if more > 0 else ""))
 
 
 def run_folder(
@@ -165,14 +172,10 @@ def run_folder(
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
                if manifest is not None else [])
     if not scan.photos and not scan.broken_links and not scan.not_files and not missing:
-        skipped = ", ".join(sub.name for sub in scan.subfolders[:SUBFOLDERS_NAMED])
-        more = len(scan.subfolders) - SUBFOLDERS_NAMED
-        where = (f"; subfolders are not searched: {skipped}" + (f" and {more} more" if more > 0
-                                                                 else "")
+        where = (f"; subfolders are not searched: {_some(scan.subfolders)}"
                  if scan.subfolders else "")
         if scan.unread_formats:
-            names = ", ".join(path.name for path in scan.unread_formats[:SUBFOLDERS_NAMED])
-            where += f"; {names}: {UNREAD_FORMAT_NOTE}"
+            where += f"; {_some(scan.unread_formats)}: {UNREAD_FORMAT_REASON}"
         raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
                                "written")
     check_writable(output_folder)
@@ -180,7 +183,7 @@ def run_folder(
     results: list[ClipResult] = []
     notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
              for sub in scan.subfolders]
-    notes += [f"{path}: {UNREAD_FORMAT_NOTE}" for path in scan.unread_formats]
+    notes += [f"{path}: {UNREAD_FORMAT_REASON}" for path in scan.unread_formats]
     for link in scan.broken_links:
         results.append(ClipResult(str(link), None, "failed", 0.0,
                                   error=f"{link}: {broken_link_reason(link)}"))

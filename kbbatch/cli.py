@@ -8,6 +8,7 @@ from dataclasses import fields
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
@@ -246,7 +247,7 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     """
     import shlex
 
-    render_options = _render_options(shared)
+    render_options = _render_options(click.get_current_context())
     preset = _preset(shared)
     options = _clip_options(shared)
     results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
@@ -254,8 +255,9 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
                f"{manifest_path.with_name(manifest_path.stem + '-previews')}")
     # The manifest holds crops: the preset, duration and depth options are the command's.
-    click.echo("render them with: " + shlex.join(["kbbatch", str(folder), "--manifest",
-                                                 str(manifest_path), *render_options]))
+    click.echo("render them with: " + shlex.join([
+        "kbbatch", str(folder.absolute()), "--manifest", str(manifest_path.absolute()),
+        *render_options]))
     for result in results:
         if result.status != "done":
             click.echo(f"FAILED {result.error}", err=True)
@@ -286,7 +288,7 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
-    render_options = _render_options(shared)
+    render_options = _render_options(click.get_current_context())
     preset = _preset(shared)
     options = _clip_options(shared)
     try:
@@ -313,25 +315,27 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         click.echo("stopped")
 
 
-def _render_options(shared: dict) -> tuple[str, ...]:
-    """The options of `preset_options` and `scene_options` given (not defaults), as a render
-    command repeats them: a preset file by its absolute path, since the command may be run
-    from another folder."""
+RENDER_REPEATS = ("preset_name", "duration", "fps", "planner", "depth_backend", "depth_model",
+                  "no_adjust", "no_refine")
+"""Options of `preset_options` and `scene_options` that a printed render command repeats."""
+
+
+def _render_options(context: click.Context) -> tuple[str, ...]:
+    """The RENDER_REPEATS options given on the command line, as a render command repeats them:
+    a preset file by its absolute path, since the command may be run from another folder."""
     arguments: list[str] = []
-    preset = shared["preset_name"]
-    if preset != "slideshow":
-        shipped = preset in builtin_names()
-        arguments += ["--preset", preset if shipped else str(Path(preset).absolute())]
-    for option, key in (("--duration", "duration"), ("--fps", "fps"),
-                        ("--depth-model", "depth_model")):
-        if shared[key] is not None:
-            arguments += [option, str(shared[key])]
-    for option, key in (("--planner", "planner"), ("--depth", "depth_backend")):
-        if shared[key] != "auto":
-            arguments += [option, shared[key]]
-    for option, key in (("--no-adjust", "no_adjust"), ("--no-refine", "no_refine")):
-        if shared[key]:
-            arguments.append(option)
+    for param in context.command.params:
+        if (param.name not in RENDER_REPEATS
+                or context.get_parameter_source(param.name) in (None, ParameterSource.DEFAULT)):
+            continue
+        value = context.params[param.name]
+        flag = max(param.opts, key=len)
+        if param.name == "preset_name" and value not in builtin_names():
+            value = str(Path(value).absolute())
+        if isinstance(param, click.Option) and param.is_flag:
+            arguments += [flag] if value else []
+        else:
+            arguments += [flag, str(value)]
     return tuple(arguments)
 
 
@@ -405,8 +409,8 @@ def models_pull(name: str, sha256: str | None) -> None:
     click.echo(f"{name}: {path}")
 
 
-def _finite(param: click.Parameter, value: float) -> float:
-    """A number option's value, refused when NaN or infinite (click's ranges let NaN by)."""
+def _finite_seconds(context: click.Context, param: click.Parameter, value: float) -> float:
+    """A number of seconds, refused when NaN or infinite (click's ranges let NaN by)."""
     if not math.isfinite(value):
         raise click.BadParameter(f"must be a finite number of seconds, got {value}",
                                  param=param)
@@ -428,7 +432,7 @@ def _finite(param: click.Parameter, value: float) -> float:
               f"(here: {default_jobs()}); each worker renders with cores/jobs threads.")
 @click.option("--poll", is_flag=True, help="Poll the folder instead of inotify (network shares).")
 @click.option("--settle", "settle_s", type=click.FloatRange(min=0), default=2.0,
-              show_default=True, callback=lambda ctx, param, value: _finite(param, value),
+              show_default=True, callback=_finite_seconds,
               help="Seconds a photo's size and time must stay unchanged before it is taken.")
 @click.option("--keep-sources", is_flag=True, help="Leave finished photos in the inbox.")
 @executor_options
@@ -460,7 +464,7 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
 @click.argument("outbox", type=click.Path(exists=True, file_okay=False, path_type=Path))
 def status(outbox: Path) -> None:
     """Counts and failures from the job journal in OUTBOX."""
-    from kbbatch.journal import JOURNAL_NAME, JournalError
+    from kbbatch.journal import JOURNAL_NAME
     from kbbatch.watch import status_lines
 
     if not (outbox / JOURNAL_NAME).is_file():

@@ -6,6 +6,7 @@ The ffmpeg binary is the one on PATH, else the one shipped in the imageio-ffmpeg
 from __future__ import annotations
 
 import functools
+import os
 import re
 import shutil
 import signal
@@ -122,10 +123,14 @@ def encoder_refusal(codec: str, pix_fmt: str, encoder_preset: str, crf: int) -> 
     rawvideo) passed, and then every photo failed."""
     trial = Preset("trial", "", TRIAL_SIZE_PX, TRIAL_SIZE_PX, 25.0, 0.08, "linear", 1.0, "in",
                    0.0, codec, crf, pix_fmt, encoder_preset)
-    frames = np.zeros((2, TRIAL_SIZE_PX, TRIAL_SIZE_PX, 3), np.uint8)
-    with tempfile.TemporaryDirectory(prefix="kbbatch-encoder-check-") as folder:
-        command = encoder_command(Path(folder) / "trial.mp4", trial)
-        result = subprocess.run(command, input=frames.tobytes(), capture_output=True)
+    frames = np.zeros((2, TRIAL_SIZE_PX, TRIAL_SIZE_PX, 3), np.uint8).tobytes()
+    try:
+        with tempfile.TemporaryDirectory(prefix="kbbatch-encoder-check-") as folder:
+            command = encoder_command(Path(folder) / "trial.mp4", trial)
+            result = subprocess.run(command, input=frames, capture_output=True)
+    except OSError:  # no room for a temporary folder: the encoder alone, into no file
+        command = encoder_command(Path(os.devnull), trial, container="null")
+        result = subprocess.run(command, input=frames, capture_output=True)
     if result.returncode == 0:
         return None
     return " ".join(result.stderr.decode(errors="replace").strip().splitlines()[:2])

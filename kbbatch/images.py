@@ -24,6 +24,9 @@ UNREAD_PHOTO_SUFFIXES = frozenset({".heic", ".heif", ".avif", ".gif", ".jxl", ".
 """Photo formats kbbatch does not read (a phone's HEIC, a camera's raw files): said, not passed
 over in silence with an exit status of success."""
 
+UNREAD_FORMAT_REASON = ("a photo format kbbatch does not read (convert it to JPEG, PNG, WebP, "
+                        "TIFF or BMP)")
+
 MAX_SOURCE_PIXELS = 120_000_000
 """Larger images are decoded at a reduced size (JPEG) or refused, so memory stays bounded."""
 
@@ -246,6 +249,32 @@ def atomic_output(final_path: Path, suffix: str):
         os.replace(temp_path, final_path)
     finally:
         temp_path.unlink(missing_ok=True)
+
+
+OWN_PNG_SOFTWARE = "kbbatch"
+"""The PNG `Software` text of the images kbbatch writes beside clips (`--save-depth`): a file of
+such a name without it is the user's, never replaced."""
+
+
+def write_own_png(path: Path, pixels: np.ndarray) -> None:
+    """Write a PNG (RGB, or single-channel 8 or 16-bit) atomically, marked as kbbatch's."""
+    from PIL.PngImagePlugin import PngInfo
+
+    info = PngInfo()
+    info.add_text("Software", OWN_PNG_SOFTWARE)
+    with atomic_output(Path(path), ".png") as temp_path:
+        Image.fromarray(np.ascontiguousarray(pixels)).save(temp_path, format="PNG", pnginfo=info)
+
+
+def is_own_png(path: Path) -> bool:
+    """Whether a file is a PNG that write_own_png wrote (a link is never one)."""
+    if path.is_symlink():
+        return False
+    try:
+        with Image.open(path) as image:
+            return image.format == "PNG" and image.text.get("Software") == OWN_PNG_SOFTWARE
+    except (OSError, ValueError, UnidentifiedImageError):
+        return False
 
 
 def write_image(path: Path, rgb: np.ndarray) -> None:

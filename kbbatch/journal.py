@@ -215,14 +215,19 @@ class Journal:
 
     def _is_free(self, name: str, source: Path, content: str, folder: Path,
                  companions: tuple[str, ...]) -> bool:
+        from kbbatch.images import is_own_png
+
+        if any(os.path.lexists(folder / file) and not is_own_png(folder / file)
+               for file in companions):
+            return False  # the user's file (beside this photo's own clip too)
         owners = sorted(self.owners(name), key=lambda job: job.updated)
         latest = owners[-1] if owners else None
         if latest is not None and (latest.source == str(source) or latest.content == content
                                    or latest.source == Path(source).name):
             return True  # this photo's own clip (re-rendered, the folder moved, or a journal
             # of an earlier version, which keyed jobs by file name)
-        if any((folder / file).exists() for file in (name, *companions)):
-            return False  # another photo's clip, or a file kbbatch did not write
+        if any(os.path.lexists(folder / file) for file in (name, *companions)):
+            return False  # another photo's clip or maps, or a file kbbatch did not write
         return latest is None or latest.state != "running"
 
 

@@ -10,7 +10,6 @@ import dataclasses
 import json
 import math
 import unicodedata
-from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ class ManifestError(ValueError):
     pass
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class ManifestEntry:
     image: str
     data: dict[str, Any]
@@ -86,7 +85,7 @@ def _normal(name: str) -> str:
     return unicodedata.normalize("NFC", name)
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class Manifest:
     path: Path
     entries: dict[str, ManifestEntry]

@@ -11,8 +11,8 @@ from kbbatch.pipeline import CLIP_SUFFIX
 
 def output_names(sources: list[Path]) -> dict[Path, str]:
     """Clip file names, distinct (ignoring case): the photo's stem, or its full name where two
-    photos share a stem or a stem is another photo's full name (x.jpg beside x.jpg.png), and
-    a number after names that differ only in case."""
+    photos share a stem or a stem is another photo's full name (x.jpg.png beside x.jpg and
+    x.png), and a number after names that differ only in case."""
     chosen = {s: s.stem for s in sources}
     while True:
         counts = Counter(name.lower() for name in chosen.values())
@@ -21,12 +21,16 @@ def output_names(sources: list[Path]) -> dict[Path, str]:
             break
         for source in clashing:
             chosen[source] = source.name
-    seen: Counter[str] = Counter()
+    taken = {name.lower() for name in chosen.values() if counts[name.lower()] == 1}
     names = {}
     for source in sorted(sources):
-        seen[chosen[source].lower()] += 1
-        number = seen[chosen[source].lower()]
-        names[source] = chosen[source] + (f".{number}" if number > 1 else "") + CLIP_SUFFIX
+        name = base = chosen[source]
+        number = 1
+        while counts[base.lower()] > 1 and name.lower() in taken:
+            number += 1
+            name = f"{base}.{number}"
+        taken.add(name.lower())
+        names[source] = name + CLIP_SUFFIX
     return names
 
 
@@ -58,5 +62,5 @@ def remove_partial_clips(folder: Path) -> list[Path]:
 def clip_name_note(source: Path, preferred: str, name: str) -> str | None:
     if name == preferred:
         return None
-    return (f"{source.name}: {preferred} already holds a clip of another photo; this one is "
-            f"named by its content: {name}")
+    return (f"{source.name}: {preferred} (or a depth map beside it) is another photo's or a "
+            f"file kbbatch did not write; this one is named by its content: {name}")

@@ -497,13 +497,13 @@ def prefetched(items: Iterator, ahead: int) -> Iterator:
 
 def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
-    from kbbatch.images import depth_image_names, write_image
+    from kbbatch.images import depth_image_names, write_own_png
     from kbbatch.review import depth_picture, normalised_disparity
 
     map_name, picture_name = depth_image_names(clip_path.name)
-    write_image(clip_path.with_name(map_name),
-                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
-    write_image(clip_path.with_name(picture_name), depth_picture(disparity))
+    write_own_png(clip_path.with_name(map_name),
+                  (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
+    write_own_png(clip_path.with_name(picture_name), depth_picture(disparity))
 
 
 def plan_summary(plan: Plan, to_photo: float) -> dict:
@@ -604,8 +604,10 @@ def clip_fingerprint(source: Path, content: str, preset: Preset, options: ClipOp
     # entry is make_clip's to report (the clip fails and is not skipped).
     with contextlib.suppress(ManifestError):
         preset, options = apply_entry(entry, preset, options)
-    settings = (asdict(preset), options.planner, entry.data if entry else None)
-    return clip_inputs(source, content, entry_depth(entry, options.depth), settings).digest
+    # With --save-depth the maps are outputs too: asking for them makes the clip again.
+    settings = (asdict(preset), options.planner, entry.data if entry else None,
+                options.save_depth)
+    return clip_inputs(source, content, options.depth, settings).digest
 
 
 @dataclass(frozen=True)

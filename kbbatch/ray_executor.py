@@ -32,13 +32,14 @@ from pathlib import Path
 from kbbatch.depth.file import find_depth_file
 from kbbatch.images import atomic_output
 from kbbatch.journal import source_fingerprint
-from kbbatch.manifest import ManifestEntry
+from kbbatch.manifest import ManifestEntry, ManifestError
 from kbbatch.pipeline import (
     CLIP_SUFFIX,
     SCRATCH_PREFIX,
     ClipJob,
     ClipOptions,
     ClipResult,
+    apply_entry,
     make_clip,
     remove_stale_scratch,
 )
@@ -313,6 +314,13 @@ class RayExecutor:
                ) -> tuple[object, int]:
         """Start a job's task: its object ref and the bytes sent (0 unless bytes_moved), or
         the photo's failure where the driver cannot read (or stat) it."""
+        if job.entry is not None and "preset" in job.entry.data:
+            # The entry's preset file lies beside the manifest on the driver, which a worker
+            # may not see: it travels loaded (a bad one is the worker's to report, as here).
+            with contextlib.suppress(ManifestError):
+                preset, _ = apply_entry(job.entry, preset, options)
+                data = {k: v for k, v in job.entry.data.items() if k != "preset"}
+                job = replace(job, entry=replace(job.entry, data=data))
         try:
             task = shared_paths_for(job) if self.shared_fs else payload_for(job)
         except OSError as error:

@@ -29,6 +29,7 @@ from pathlib import Path
 from kbbatch import models
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
+    UNREAD_FORMAT_REASON,
     atomic_output,
     broken_link_reason,
     depth_image_names,
@@ -45,7 +46,12 @@ from kbbatch.journal import (
     source_fingerprint,
 )
 from kbbatch.manifest import Manifest, ManifestEntry
-from kbbatch.outputs import check_writable, output_names, remove_partial_clips
+from kbbatch.outputs import (
+    check_writable,
+    clip_name_note,
+    output_names,
+    remove_partial_clips,
+)
 from kbbatch.pipeline import (
     ClipOptions,
     ClipResult,
@@ -85,12 +91,11 @@ def is_candidate(path: Path) -> bool:
     return is_image_file(path) and not name.endswith(TEMPORARY_SUFFIXES)
 
 
-UNUSABLE_ENTRIES = {
-    "subfolder": "subfolders are not watched; move its photos into the inbox",
-    "broken_link": "broken symbolic link (or links in a loop)",  # said by broken_link_reason
-    "not_file": "not a regular file (a named pipe, socket or device); not read",
-    "unread_format": "a photo format kbbatch does not read; left in the inbox (convert it to "
-                     "JPEG, PNG, WebP, TIFF or BMP)",
+UNUSABLE_ENTRIES: dict[str, Callable[[Path], str]] = {
+    "subfolder": lambda path: "subfolders are not watched; move its photos into the inbox",
+    "broken_link": broken_link_reason,  # a missing target, or links in a loop
+    "not_file": lambda path: "not a regular file (a named pipe, socket or device); not read",
+    "unread_format": lambda path: UNREAD_FORMAT_REASON,
 }
 """What the log says, once, of an inbox entry that is no photo to take (images.entry_kind)."""
 
@@ -167,9 +172,15 @@ def move_photo(path: Path, destination: Path) -> None:
     if target is None or os.path.isabs(target):
         shutil.move(str(path), destination)
         return
-    os.symlink(os.path.relpath(os.path.join(path.parent, target), destination.parent),
+    # The target as written, after the way back from the new folder: tidied as text,
+    # `dirlink/../x.jpg` would mean another file.
+    os.symlink(os.path.join(os.path.relpath(path.parent, destination.parent), target),
                destination)
-    path.unlink()
+    try:
+        path.unlink()
+    except OSError:
+        destination.unlink()  # one link, in the inbox, as the error says
+        raise
 
 
 def folder_is_writable(folder: Path) -> bool:
@@ -270,8 +281,7 @@ class InboxTracker:
         if kind in UNUSABLE_ENTRIES:
             if path not in self.mentioned:
                 self.mentioned.add(path)
-                log.warning("%s: %s", path, broken_link_reason(path) if kind == "broken_link"
-                            else UNUSABLE_ENTRIES[kind])
+                log.warning("%s: %s", path, UNUSABLE_ENTRIES[kind](path))
             return False
         return is_candidate(path)
 
@@ -374,9 +384,9 @@ class JobRunner:
                 continue
             self.journal.start(path, fingerprint, settings, name, content)
             inbox.forget(path)
-            if name != preferred:
-                log.warning("%s: %s already holds a clip of another photo; this one is named "
-                            "by its content: %s", path.name, preferred, name)
+            note = clip_name_note(path, preferred, name)
+            if note is not None:
+                log.warning("%s", note)
             log.info("start %s", path.name)
             try:
                 future = self.pool.submit(_render, path, output, s.preset, options, entry)
@@ -387,11 +397,9 @@ class JobRunner:
             self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed)
 
     def preferred_name(self, source: Path) -> str:
-        """The batch's rule: the stem, or the full name while another photo in the inbox
-        shares the stem."""
-        siblings = [p for p in scan_folder(self.settings.inbox).photos
-                    if p.stem.lower() == source.stem.lower() and p != source]
-        return output_names([source, *siblings])[source]
+        """The batch's rule (outputs.output_names) over the photos in the inbox now."""
+        others = [p for p in scan_folder(self.settings.inbox).photos if p != source]
+        return output_names([source, *others])[source]
 
     def finish_completed(self, removed: set[Path] | None = None) -> None:
         """Record the clips that are finished. removed: photos deleted from the inbox since

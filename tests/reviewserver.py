@@ -70,7 +70,7 @@ class Served:
 @contextmanager
 def running_server(folder: Path, manifest: Path, preset: Preset, options: ClipOptions
                    ) -> Iterator[Served]:
-    session = ReviewSession(folder, manifest, preset, options)
+    session = ReviewSession(folder, manifest, preset, options, ())
     server = ReviewServer(session, "127.0.0.1", 0)
     thread = threading.Thread(target=server.serve, daemon=True)
     thread.start()

@@ -65,7 +65,7 @@ def test_review_shows_a_render_command_that_repeats_its_preset_file_and_options(
     review = cli.review.make_context("kbbatch", [str(photos), "--manifest", str(manifest),
                                                  *given])
     session = ReviewSession(photos, manifest, load_preset("mine.toml"), ClipOptions(),
-                            cli._render_options(dict(review.params)))
+                            cli._render_options(review))
     program, *arguments = shlex.split(session.render_command())
     monkeypatch.chdir("/")  # the command is run from anywhere
     render = cli.render.make_context(program, arguments).params
@@ -73,7 +73,7 @@ def test_review_shows_a_render_command_that_repeats_its_preset_file_and_options(
     assert (render["duration"], render["planner"], render["depth_backend"],
             render["no_refine"]) == (1.5, "center", "ramp", True)
     plain = cli.review.make_context("kbbatch", [str(photos), "--manifest", str(manifest)])
-    assert cli._render_options(dict(plain.params)) == ()
+    assert cli._render_options(plain) == ()
 
 
 def test_status_on_a_damaged_journal_says_so_in_one_line(tmp_path):

@@ -272,6 +272,12 @@ def test_a_salient_card_takes_back_the_half_salient_notch_isnet_left_in_it():
     assert not guitar[:70].any()  # the neck above the body is not
     assert not stool[170:, 265:280].any()
     assert not stool[170:, 305:350].any()
+    # Another card lying in a notch stays a card of its own, not part of this one.
+    from kbbatch.depth.popup import close_notches
+
+    other = np.zeros_like(guitar)
+    other[100:120, 104:117] = True
+    assert not (close_notches(guitar & ~other, saliency, other) & other).any()
 
 
 def test_the_ground_plane_has_no_corner_and_stays_finite_at_any_horizon():

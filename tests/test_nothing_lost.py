@@ -19,7 +19,7 @@ from PIL import Image
 from kbbatch import batch
 from kbbatch.batch import default_jobs, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
-from kbbatch.images import ImageReadError, read_image
+from kbbatch.images import UNREAD_FORMAT_REASON, ImageReadError, read_image
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
 from kbbatch.pipeline import ClipOptions
 
@@ -103,15 +103,18 @@ def test_a_second_card_with_the_same_names_never_replaces_a_clip(tmp_path, quick
 
 def test_saved_depth_never_replaces_a_file_kbbatch_did_not_write(tmp_path, quick_preset):
     """A camera card's folder used as the output of another card: its own IMG_1.disparity.png
-    (made by the user) was silently replaced by the other photo's map."""
+    (made by the user) was silently replaced by the other photo's map, on the first render
+    with --save-depth and on one after a render without it (the clip then being kbbatch's)."""
     from dataclasses import replace
 
     out = tmp_path / "cardA"
     photo(out / "IMG_1.jpg", seed=1)
     (out / "IMG_1.disparity.png").write_bytes(b"the user's own map")
     photo(tmp_path / "cardB" / "IMG_1.jpg", seed=2)
-    options = replace(FAST, save_depth=True)
-    [result] = run_folder(tmp_path / "cardB", out, quick_preset, options, False).results
+    first = run_folder(tmp_path / "cardB", out, quick_preset, FAST, False)
+    assert [Path(r.output).name for r in first.results] == ["IMG_1.mp4"]
+    with_maps = replace(FAST, save_depth=True)
+    [result] = run_folder(tmp_path / "cardB", out, quick_preset, with_maps, False).results
     assert result.status == "done" and "named by its content" in result.note
     assert (out / "IMG_1.disparity.png").read_bytes() == b"the user's own map"
     clip = Path(result.output)
@@ -119,8 +122,9 @@ def test_saved_depth_never_replaces_a_file_kbbatch_did_not_write(tmp_path, quick
     assert (out / (clip.stem + ".disparity.png")).is_file()
     assert (out / (clip.stem + ".depth-preview.png")).is_file()
     # Its own maps it replaces, under the same name.
-    again = run_folder(tmp_path / "cardB", out, quick_preset, options, False, force=True)
+    again = run_folder(tmp_path / "cardB", out, quick_preset, with_maps, False, force=True)
     assert [r.output for r in again.results] == [str(clip)]
+    assert (out / "IMG_1.disparity.png").read_bytes() == b"the user's own map"
 
 
 def test_a_manifest_entrys_preset_file_is_found_beside_the_manifest_and_is_an_input(
@@ -355,6 +359,19 @@ def test_plan_previews_of_same_stem_photos_do_not_collide(tmp_path, quick_preset
     assert previews == ["a.jpg.jpg", "a.jpg.png.jpg", "a.png.jpg", "b.jpg", "contact-sheet.png"]
 
 
+@pytest.mark.parametrize("names", [
+    ("x.jpg", "x.png", "x.jpg.png"),  # a stem that is another photo's full name
+    ("A.jpg", "a.jpg", "a.jpg.2.png"),  # names differing in case, and one like their number
+    ("IMG_1.JPG", "img_1.png", "IMG_1.jpg.png", "other.jpg"),
+])
+def test_clip_names_of_a_folder_are_distinct_ignoring_case(names):
+    from kbbatch.outputs import output_names
+
+    clips = output_names([Path("/photos") / name for name in names])
+    assert len({clip.lower() for clip in clips.values()}) == len(names), clips
+    assert clips[Path("/photos") / names[-1]].startswith(Path(names[-1]).stem)
+
+
 def test_plan_beside_the_photos_adds_no_photo_and_survives_a_name_that_is_not_utf8(
         tmp_path, quick_preset):
     """A name that is not UTF-8 crashed the whole plan run inside OpenCV's putText (no
@@ -403,7 +420,7 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
         assert "symbolic link in a loop" in by_name[name].error
     assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
     assert [note for note in report.notes if "format kbbatch does not read" in note] == [
-        f"{folder / 'IMG_0002.heic'}: {batch.UNREAD_FORMAT_NOTE}"]
+        f"{folder / 'IMG_0002.heic'}: {UNREAD_FORMAT_REASON}"]
 
 
 def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):

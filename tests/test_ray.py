@@ -435,3 +435,46 @@ def test_a_worker_node_killed_mid_clip_has_its_photo_made_elsewhere_once(
     assert journal_rows(output) == {p.name: ("done", 1) for p in photos}  # recorded once each
     # the killed worker's scratch folder was removed by a later clip on this machine
     assert not list(Path(tempfile.gettempdir()).glob(f"{SCRATCH_PREFIX}{busy}-*"))
+
+
+def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_see_it(
+        tmp_path, monkeypatch):
+    """The entry's preset file lies beside the manifest on the driver; a worker (another
+    machine, or a scratch folder) looked for it where it runs. Run through the task function
+    itself, from another folder, after the file is gone: no cluster needed to see it."""
+    from PIL import Image
+
+    from kbbatch.depth import DepthOptions
+    from kbbatch.manifest import load_manifest
+    from kbbatch.pipeline import ClipJob
+    from kbbatch.ray_executor import make_clip_from_bytes
+
+    from .conftest import textured_image
+
+    Image.fromarray(textured_image(180, 320)).save(tmp_path / "a.jpg")
+    look = tmp_path / "m" / "look.toml"
+    look.parent.mkdir()
+    look.write_text('base = "preview"\nwidth_px = 256\nheight_px = 144\nfps = 10\n'
+                    'duration_s = 0.4\n')
+    (tmp_path / "m" / "manifest.json").write_text(
+        '{"version": 1, "images": {"a.jpg": {"preset": "look.toml", "duration_s": 0.3}}}')
+    entry = load_manifest(tmp_path / "m" / "manifest.json").entry("a.jpg")
+    sent = []
+
+    class RemoteClip:  # what Ray's remote function receives
+        def remote(self, *arguments):
+            sent.append(arguments)
+            return "ref"
+
+    options = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"))
+    job = ClipJob(tmp_path / "a.jpg", tmp_path / "out" / "a.mp4", entry, "a.mp4")
+    RayExecutor().submit(RemoteClip(), job, load_preset("slideshow"), options)
+    [(payload, preset, worker_options)] = sent
+    assert (preset.width_px, preset.duration_s) == (256, 0.3)
+    look.unlink()
+    monkeypatch.chdir("/")
+    outcome = make_clip_from_bytes(payload, preset, worker_options)
+    assert outcome.result.status == "done", outcome.result.error
+    clip = tmp_path / "clip.mp4"
+    clip.write_bytes(outcome.files["a.mp4"])
+    assert probe(clip).width_px == 256

@@ -309,3 +309,21 @@ def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+def test_the_page_shows_an_entry_whose_key_is_in_the_other_unicode_form(tmp_path):
+    """The batch applies a composed `café.jpg` key to a photo saved decomposed; the page showed
+    the automatic plan instead, and saving added a second key that looks the same."""
+    import unicodedata
+
+    from kbbatch.web.app import ReviewSession
+
+    composed = unicodedata.normalize("NFC", "café.jpg")
+    decomposed = unicodedata.normalize("NFD", composed)
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    write_image(folder / decomposed, textured_image(120, 200))
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {composed: {"planner": "center"}}}))
+    session = ReviewSession(folder, manifest, load_preset("preview"), OPTIONS, ())
+    assert session.entries == {decomposed: {"planner": "center"}}

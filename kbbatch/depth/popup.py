@@ -98,16 +98,19 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     binary = (saliency > SALIENT_THRESHOLD).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
-    cards = [close_notches(clean_mask(labels == k), saliency) for k in range(1, count)
-             if stats[k, cv2.CC_STAT_AREA] >= minimum]
+    large = [k for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
+    cards = [close_notches(clean_mask(labels == k), saliency,
+                           np.isin(labels, [other for other in large if other != k]))
+             for k in large]
     return [(card, True) for card in cards if card.sum() >= minimum and stands_up(card)]
 
 
-def close_notches(mask: np.ndarray, saliency: np.ndarray) -> np.ndarray:
-    """mask with its narrow-mouthed notches and holes that ISNet found half-salient."""
+def close_notches(mask: np.ndarray, saliency: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """mask with its narrow-mouthed notches and holes that ISNet found half-salient, but not
+    the pixels of other salient regions (others) lying in them: those are cards of their own."""
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * NOTCH_MOUTH_PX + 1,) * 2)
     closed = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
-    added = (closed.astype(bool) | (enclosed_holes(closed)[0] > 0)) & ~mask
+    added = (closed.astype(bool) | (enclosed_holes(closed)[0] > 0)) & ~mask & ~others
     count, labels = cv2.connectedComponents(added.astype(np.uint8), connectivity=8)
     if count <= 1:
         return mask

@@ -94,7 +94,7 @@ class ReviewSession:
     """The folder, the manifest being edited, the plans and previews, for one server run."""
 
     def __init__(self, folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
-                 render_options: tuple[str, ...] = ()) -> None:
+                 render_options: tuple[str, ...]) -> None:
         """render_options: the command-line options (preset, overrides, planner, depth) the
         page was started with, which the render command it shows must repeat."""
         self.folder = Path(folder).resolve()
@@ -103,10 +103,10 @@ class ReviewSession:
         self.options = options
         self.render_options = render_options
         self.token = secrets.token_urlsafe(32)
-        self.entries = self._manifest_on_disk()
         # Only files that really lie inside the folder: a symlink pointing out is not served.
         self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
                        if p.resolve().is_relative_to(self.folder)}
+        self.entries = self._manifest_on_disk()
         self._lock = threading.Lock()
         self._save_lock = threading.Lock()
         self._key_locks: dict[str, threading.Lock] = {}
@@ -121,7 +121,12 @@ class ReviewSession:
         if not self.manifest_path.exists():
             return {}
         manifest = load_manifest(self.manifest_path)
-        return {name: entry.data for name, entry in manifest.entries.items()}
+        entries = {name: entry.data for name, entry in manifest.entries.items()}
+        for name in self.photos:  # a key in the other Unicode form takes the photo's spelling,
+            entry = manifest.entry(name)  # so the page shows and saves the entry that renders
+            if entry is not None and entry.image != name:
+                entries[name] = entries.pop(entry.image)
+        return entries
 
     def render_command(self) -> str:
         command = ["kbbatch", str(self.folder), "--manifest", str(self.manifest_path)]
