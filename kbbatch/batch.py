@@ -319,6 +319,9 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     from kbbatch.manifest import plan_to_entry, write_manifest
     from kbbatch.review import contact_sheet, draw_plan
 
+    if manifest_path.is_dir():
+        raise OutputFolderError(f"{manifest_path}: is a folder; give the manifest's file name")
+    check_writable(manifest_path.parent)  # before the planning, not after it
     preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
     results: list[PlanResult] = []
     entries: dict[str, dict] = {}

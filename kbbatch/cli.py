@@ -123,7 +123,12 @@ def _preset(options: dict) -> Preset:
 
 
 def _clip_options(options: dict, **more) -> ClipOptions:
-    """The ClipOptions of `scene_options`, plus what the command adds."""
+    """The ClipOptions of `scene_options`, plus what the command adds; the models cache is
+    checked here, once, before any photo."""
+    try:
+        model_registry.check_cache()
+    except model_registry.ModelError as error:
+        raise click.ClickException(str(error)) from error
     depth = DepthOptions(backend=options.pop("depth_backend"), model=options.pop("depth_model"),
                          adjust=not options.pop("no_adjust"),
                          refine=not options.pop("no_refine"))
@@ -250,7 +255,12 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     render_options = _render_options(click.get_current_context())
     preset = _preset(shared)
     options = _clip_options(shared)
-    results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
+    try:
+        results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
+    except OSError as error:  # the manifest or its previews cannot be written
+        raise click.ClickException(str(error) if isinstance(error, OutputFolderError) else
+                                   f"{error.filename or manifest_path}: cannot be written "
+                                   f"({error.strerror or error})") from error
     done = [r for r in results if r.status == "done"]
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
                f"{manifest_path.with_name(manifest_path.stem + '-previews')}")

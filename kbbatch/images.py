@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -65,15 +66,19 @@ def depth_image_names(clip_name: str) -> tuple[str, str]:
     return stem + SAVED_DISPARITY_SUFFIX, stem + DEPTH_PREVIEW_SUFFIX
 
 
+DEPTH_MAP_NAME = re.compile(r"\.(depth|disparity)\.(png|npy|exr)$", re.IGNORECASE)
+"""How a user's depth map's name ends (`IMG_1.depth.png`, kbbatch.depth.file): never a photo.
+Only the end: `dive.depth.40m.jpg` is a photo (any `.depth.` in a name once hid it silently)."""
+
+
 def is_image_file(path: Path) -> bool:
     """Whether a file looks like a photo we should process (hidden and depth maps excluded)."""
     name = path.name
     return (
         path.suffix.lower() in IMAGE_SUFFIXES
         and not name.startswith(".")
-        and ".depth." not in name.lower()
-        and ".disparity." not in name.lower()
-        and DEPTH_PREVIEW_SUFFIX not in name.lower()
+        and DEPTH_MAP_NAME.search(name) is None
+        and not name.lower().endswith(DEPTH_PREVIEW_SUFFIX)
     )
 
 

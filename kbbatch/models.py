@@ -173,6 +173,36 @@ def session_threads() -> int:
     return max(1, usable_cores() // _jobs_sharing_cores)
 
 
+def check_cache() -> None:
+    """Raise ModelError, naming the file, when a cached model cannot be used: unreadable, or
+    not the registry's file (its sha256 pinned); or when $KBBATCH_PROVIDER names a provider
+    this onnxruntime lacks. Checked once at start: found at each photo instead, the daemon
+    filed every good photo as failed for a damaged download."""
+    cached = [(spec, cached_path(spec.name)) for spec in REGISTRY.values()]
+    cached = [(spec, path) for spec, path in cached if path is not None]
+    for spec, path in cached:
+        try:
+            stat = path.stat()
+            actual = _sha256(path, stat.st_size, stat.st_mtime_ns)
+        except OSError as error:
+            raise ModelError(f"{path}: model {spec.name} cannot be read "
+                             f"({error.strerror or error})") from error
+        if spec.sha256 and actual != spec.sha256.lower():
+            raise ModelError(f"{path}: not the file of model {spec.name} (sha256 {actual[:16]}..., "
+                             f"expected {spec.sha256[:16]}...): damaged or another file; remove "
+                             f"it, or run `kbbatch models pull {spec.name}`")
+    if cached:
+        execution_provider()
+
+
+@functools.cache
+def _sha256(path: Path, size_bytes: int, mtime_ns: int) -> str:
+    """A model file's sha256, once per process for a given size and time."""
+    from kbbatch.fingerprint import file_sha256
+
+    return file_sha256(path)
+
+
 def execution_provider() -> str:
     """The onnxruntime provider: $KBBATCH_PROVIDER if set, else CUDA where the installed
     onnxruntime has it (the `onnxruntime-gpu` build), else CPU."""

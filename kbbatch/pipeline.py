@@ -204,7 +204,7 @@ def prepare_scene(
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))
     risk = assess_risk(working, depth, plan, scene)
-    if risk.relief < 1.0:  # do no harm: less parallax rather than a broken-looking clip
+    if risk.relief < 1.0 and risk.reasons:  # do no harm: less parallax, not a broken clip
         log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
                     round(100 * risk.relief), "; ".join(risk.reasons))
         depth = relieved(depth, risk.relief)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import json
 import logging
 import os
@@ -27,6 +28,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from kbbatch import models
+from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
     UNREAD_FORMAT_REASON,
@@ -557,6 +559,7 @@ class JobRunner:
         if self.keep_sources or not path.exists():
             return None
         destination = unique_destination(self.settings.inbox / folder, path.name)
+        depth_map = find_depth_file(path)
         try:
             move_photo(path, destination)
         except OSError as error:
@@ -564,6 +567,17 @@ class JobRunner:
                       error.strerror or error)
             return None
         self.journal.moved(path, destination)
+        if depth_map is not None:  # left behind, it was taken for the map of the next photo
+            # dropped under this name (a different one)
+            map_destination = destination.with_name(
+                destination.stem + depth_map.name[len(path.stem):])
+            try:
+                if os.path.lexists(map_destination):
+                    raise FileExistsError(errno.EEXIST, "a file of its name is there")
+                move_photo(depth_map, map_destination)
+            except OSError as error:
+                log.error("%s: cannot be moved to %s/ beside its photo (%s)", depth_map,
+                          folder, error.strerror or error)
         return destination
 
     def write_failure_report(self, photo: Path, result: ClipResult) -> None:

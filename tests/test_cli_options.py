@@ -133,3 +133,22 @@ def test_plan_prints_the_render_command_that_repeats_its_options(tmp_path):
     render = cli.render.make_context(program, arguments).params
     assert (render["preset_name"], render["duration"], render["depth_backend"]) == (
         "preview", 1.5, "ramp")
+
+
+def test_plan_checks_where_the_manifest_goes_before_planning(tmp_path):
+    """Into a folder that cannot be written (or under a file), plan worked through every
+    photo and then ended in a traceback, the planning lost."""
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from .conftest import textured_image
+
+    (tmp_path / "photos").mkdir()
+    Image.fromarray(textured_image(180, 320)).save(tmp_path / "photos" / "a.jpg")
+    (tmp_path / "afile").write_text("a file, not a folder")
+    result = CliRunner().invoke(cli.main, ["plan", str(tmp_path / "photos"), "-o",
+                                           str(tmp_path / "afile" / "m.json"), "--depth",
+                                           "ramp", "--quiet"])
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit)
+    assert "afile: output folder is not writable" in result.output
+    assert "plan(s) written" not in result.output

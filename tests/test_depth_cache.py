@@ -64,6 +64,9 @@ def test_the_bound_defaults_to_2_gb_and_a_bad_value_says_so(monkeypatch, caplog)
     with caplog.at_level(logging.WARNING):
         assert depth_cache.cache_max_bytes() == 2048 * 2**20
     assert "KBBATCH_CACHE_MAX_MB='lots' is not a size in MB" in caplog.text
+    for value in ("inf", "nan", "-5"):  # inf failed every photo with an OverflowError
+        monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, value)
+        assert depth_cache.cache_max_bytes() == 2048 * 2**20
 
 
 def test_a_damaged_entry_is_a_miss_not_an_error():

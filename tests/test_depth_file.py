@@ -108,3 +108,35 @@ def test_unknown_pixels_beside_an_object_take_the_depth_behind_it_not_the_farthe
     assert disparity[20:30, 30:34] == pytest.approx(1 / 5.0)  # the wall behind, not 1/40
     assert disparity[0, 0] == pytest.approx(1 / 40.0)
     assert disparity[20, 25] == pytest.approx(1 / 2.0) and disparity[20, 45] == pytest.approx(0.2)
+
+
+def test_a_map_with_an_upper_case_suffix_is_found_and_a_photo_named_depth_is_a_photo(tmp_path):
+    """`cat.depth.PNG` was left out of the photos as a map yet never used as one; and
+    `dive.depth.40m.jpg`, a photo, was left out of the folder without a word."""
+    from kbbatch.images import list_images
+
+    depth = np.full((50, 80), 4000, np.uint16)
+    depth[10:30, 20:50] = 1000
+    cv2.imwrite(str(tmp_path / "cat.depth.PNG"), depth)
+    (tmp_path / "cat.jpg").write_bytes(b"unused")
+    result = estimate_disparity(textured_image(100, 160), tmp_path / "cat.jpg")
+    assert result.backend == "file" and "cat.depth.PNG" in result.source
+    for name in ("dive.depth.40m.jpg", "stereo.disparity.test.png", "plain.jpg"):
+        cv2.imwrite(str(tmp_path / name), textured_image(20, 30))
+    assert sorted(p.name for p in list_images(tmp_path)) == [
+        "cat.jpg", "dive.depth.40m.jpg", "plain.jpg", "stereo.disparity.test.png"]
+
+
+def test_a_colour_mapped_picture_is_refused_as_a_depth_map_and_grey_as_colour_is_read(
+        tmp_path):
+    """A false-colour depth picture was read from its blue channel: depth out of order."""
+    gradient = np.tile(np.linspace(10, 250, 60).astype(np.uint8), (40, 1))
+    cv2.imwrite(str(tmp_path / "a.disparity.png"),
+                cv2.applyColorMap(gradient, cv2.COLORMAP_TURBO))
+    with pytest.raises(DepthError, match=r"a.disparity.png: is a colour picture"):
+        estimate_disparity(textured_image(40, 60), tmp_path / "a.jpg")
+    cv2.imwrite(str(tmp_path / "b.disparity.png"), cv2.merge([gradient] * 3))
+    result = estimate_disparity(textured_image(40, 60), tmp_path / "b.jpg")
+    assert result.disparity[20, 55] > result.disparity[20, 5]
+    np.save(tmp_path / "c.disparity.npy", gradient[None].astype(np.float32))  # (1, H, W)
+    assert estimate_disparity(textured_image(40, 60), tmp_path / "c.jpg").backend == "file"

@@ -145,3 +145,27 @@ def test_sessions_take_their_share_of_the_cores_and_the_chosen_provider(tmp_path
         with pytest.raises(models.ModelError, match="KBBATCH_PROVIDER=cuda: this onnxruntime "
                                                     "offers .*CPUExecutionProvider"):
             models.execution_provider()
+
+
+def test_a_damaged_model_in_the_cache_stops_the_run_at_start_naming_the_file(
+        tmp_path, monkeypatch):
+    """A truncated download under a model's name failed every photo with onnxruntime's
+    "Protobuf parsing failed", and the daemon filed every good photo in failed/."""
+    from click.testing import CliRunner
+
+    from kbbatch import models
+    from kbbatch.cli import main
+
+    spec = models.REGISTRY["isnet-dis-medium"]
+    assert spec.sha256, "a pinned model"
+    (tmp_path / spec.filename).write_bytes(b"garbage, not the network")
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    with pytest.raises(models.ModelError, match=rf"{spec.filename}: not the file of model"):
+        models.check_cache()
+    (tmp_path / "photos").mkdir()
+    for command in (["plan", str(tmp_path / "photos"), "-o", str(tmp_path / "m.json")],
+                    ["watch", str(tmp_path / "photos"), "--out", str(tmp_path / "out")]):
+        result = CliRunner().invoke(main, command)
+        assert result.exit_code == 1 and isinstance(result.exception, SystemExit), command
+        assert f"{spec.filename}: not the file of model isnet-dis-medium" in result.output
+    assert not (tmp_path / "photos" / "failed").exists()

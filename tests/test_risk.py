@@ -167,3 +167,19 @@ def test_the_pieces_of_one_line_join_and_other_lines_do_not():
     longest = max(lines, key=lambda line: np.linalg.norm(line[1] - line[0]))
     assert np.linalg.norm(longest[1] - longest[0]) == pytest.approx(190.0, abs=1.0)
     assert len(join_collinear([upper, lower], gap_px=5.0)) == 2  # too far apart
+
+
+def test_a_flat_2d_plan_logs_no_parallax_reduction(caplog):
+    """`--planner 2d` logged "parallax reduced to 0%: " with no reason for every photo."""
+    import logging
+
+    from kbbatch.depth import DepthOptions
+    from kbbatch.pipeline import ClipOptions, prepare_scene
+    from kbbatch.presets import load_preset
+
+    from .conftest import textured_image
+
+    with caplog.at_level(logging.WARNING):
+        prepare_scene(textured_image(180, 320), None, load_preset("preview"),
+                      ClipOptions(planner="2d", depth=DepthOptions(backend="ramp")), {})
+    assert "parallax reduced" not in caplog.text

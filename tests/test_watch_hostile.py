@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -459,3 +460,24 @@ def test_a_linked_photo_moved_to_done_still_leads_to_its_file(tmp_path):
         assert destination.read_bytes() == b"the photo", name
     assert os.readlink(inbox / "done" / "rel.jpg") == "nowhere.jpg"
     assert (inbox / "done" / "rel.1.jpg").resolve() == (photos / "x.jpg").resolve()
+
+
+def test_a_photos_depth_map_goes_to_done_with_it(tmp_path):
+    """Left in the inbox, b.disparity.png was used for the next, different b.jpg dropped
+    there: a wrong depth for that photo, without a word. (The daemon runs with --depth file,
+    so the map is what its clip is made from.)"""
+    import cv2
+
+    inbox, outbox, preset = folders(tmp_path)
+    Image.fromarray(textured_image(180, 320, seed=1)).save(inbox / "b.jpg")
+    ramp = np.tile(np.linspace(1000, 60000, 320).astype(np.uint16), (180, 1))
+    cv2.imwrite(str(inbox / "b.disparity.png"), ramp)
+    daemon = start_daemon(inbox, outbox, preset, "--depth", "file")
+    try:
+        wait_for(lambda: (inbox / "done" / "b.disparity.png").exists(), 120,
+                 "the map moved to done/ beside its photo")
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["b.mp4"]
+    assert sorted(p.name for p in (inbox / "done").iterdir()) == ["b.disparity.png", "b.jpg"]
+    assert not (inbox / "b.disparity.png").exists()

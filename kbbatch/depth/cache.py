@@ -72,7 +72,7 @@ def cache_max_bytes() -> int:
     if text:
         try:
             megabytes = float(text)
-            if megabytes >= 0:
+            if 0 <= megabytes < float("inf"):  # inf once failed every photo (OverflowError)
                 return int(megabytes * 2**20)
         except ValueError:
             pass

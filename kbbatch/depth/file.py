@@ -26,15 +26,20 @@ pass; Y or R: a map saved as an image); else the only channel there is."""
 
 
 def find_depth_file(photo_path: Path) -> Path | None:
-    """The user's depth or disparity map beside a photo, if any."""
+    """The user's depth or disparity map beside a photo, if any: `.depth.png` in lower, upper
+    or capitalised case (`.depth.PNG` from a camera tool was left out of the photos, as a
+    map, yet never used as one)."""
     for kind in DEPTH_FILE_KINDS:
         for suffix in DEPTH_FILE_SUFFIXES:
-            candidate = photo_path.with_name(f"{photo_path.stem}.{kind}{suffix}")
-            try:
-                if candidate.is_file():
-                    return candidate
-            except OSError:  # a name too long for the file system: no such map can exist
-                continue
+            for ending in dict.fromkeys((f".{kind}{suffix}", f".{kind}{suffix.upper()}",
+                                         f".{kind}{suffix}".upper(),
+                                         f".{kind.capitalize()}{suffix}")):
+                candidate = photo_path.with_name(photo_path.stem + ending)
+                try:
+                    if candidate.is_file():
+                        return candidate
+                except OSError:  # a name too long for the file system: no such map exists
+                    continue
     return None
 
 
@@ -59,7 +64,13 @@ def load_map(path: Path) -> np.ndarray:
         if data is None:
             raise DepthError(f"{path}: not a readable image")
     data = np.asarray(data)
-    if data.ndim == 3:
+    if data.ndim > 2 and sum(side > 1 for side in data.shape) == 2:
+        data = data.squeeze()  # a (1, H, W) array, as a network's output is saved
+    if data.ndim == 3:  # grey saved as colour is fine; a colour-mapped picture is no depth
+        colour = data[..., :3]
+        if not (colour == colour[..., :1]).all():
+            raise DepthError(f"{path}: is a colour picture; a depth map has one channel "
+                             "(grey levels)")
         data = data[..., 0]
     if data.ndim != 2:
         raise DepthError(f"{path}: expected a 2D map, got shape {data.shape}")
