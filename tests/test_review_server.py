@@ -327,3 +327,36 @@ def test_the_page_shows_an_entry_whose_key_is_in_the_other_unicode_form(tmp_path
     manifest.write_text(json.dumps({"version": 1, "images": {composed: {"planner": "center"}}}))
     session = ReviewSession(folder, manifest, load_preset("preview"), OPTIONS, ())
     assert session.entries == {decomposed: {"planner": "center"}}
+
+
+def test_the_page_follows_a_depth_map_edited_while_open_and_says_what_is_wrong(
+        tmp_path, monkeypatch):
+    """Keyed by the photo alone, a preview of a photo whose depth map was edited was the old
+    one; a bad map, an unwritable cache or manifest gave '500 internal error'."""
+    from kbbatch.depth import cache as depth_cache
+    from kbbatch.web.app import RequestError, ReviewSession
+
+    (tmp_path / "afile").write_text("a file, not a folder")
+    monkeypatch.setattr(depth_cache, "cache_dir", lambda: tmp_path / "afile" / "cache")
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    write_image(folder / "cat.jpg", textured_image(180, 320, seed=1))
+    ramp = np.tile(np.linspace(1000, 60000, 320).astype(np.uint16), (180, 1))
+    cv2.imwrite(str(folder / "cat.disparity.png"), ramp)
+    write_image(folder / "dog.jpg", textured_image(180, 320, seed=2))
+    (folder / "dog.disparity.png").write_bytes(b"not a png")
+    options = ClipOptions(planner="center", depth=DepthOptions(backend="file"), threads=1)
+    session = ReviewSession(folder, tmp_path / "afile" / "m.json", load_preset("preview"),
+                            options, ())
+    assert not session.cache_dir.is_relative_to(tmp_path)  # a folder for this run instead
+    first = session.preview("cat.jpg", {})
+    cv2.imwrite(str(folder / "cat.disparity.png"), ramp[:, ::-1])  # near on the other side
+    assert session.preview("cat.jpg", {}) != first
+    for request in (lambda: session.auto_plan("dog.jpg", None),
+                    lambda: session.picture("dog.jpg", "depth")):
+        with pytest.raises(RequestError) as refused:
+            request()
+        assert refused.value.status == 422 and "dog.disparity.png" in refused.value.message
+    with pytest.raises(RequestError) as refused:
+        session.save({"cat.jpg": {"planner": "center"}})
+    assert refused.value.status == 500 and "m.json: cannot be written" in refused.value.message

@@ -9,11 +9,13 @@ rendered; every POST needs the session's token, and every request must name a lo
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import secrets
 import shlex
+import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -28,8 +30,9 @@ from werkzeug.exceptions import HTTPException
 from werkzeug.serving import make_server
 
 from kbbatch.camera import working_size
+from kbbatch.depth import DepthError
 from kbbatch.depth import cache as depth_cache
-from kbbatch.fingerprint import file_sha256
+from kbbatch.fingerprint import clip_inputs, file_sha256
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.manifest import (
     ManifestEntry,
@@ -39,6 +42,7 @@ from kbbatch.manifest import (
     plan_to_entry,
     write_manifest,
 )
+from kbbatch.outputs import OutputFolderError, check_writable
 from kbbatch.pipeline import ClipOptions, apply_entry, make_clip, resize_to, working_depth
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
@@ -82,7 +86,15 @@ class PhotoState:
 
 
 def review_cache_dir() -> Path:
-    return depth_cache.cache_dir() / "review"
+    """Where plans and previews are kept between runs; a temporary folder for this run when
+    that cannot be written (every plan, preview and save failed with a PermissionError)."""
+    folder = depth_cache.cache_dir() / "review"
+    try:
+        check_writable(folder)
+    except OutputFolderError as error:
+        log.warning("%s; plans and previews are kept for this run only", error)
+        return Path(tempfile.mkdtemp(prefix="kbbatch-review-"))
+    return folder
 
 
 def _digest(settings: dict[str, Any]) -> str:
@@ -102,6 +114,7 @@ class ReviewSession:
         self.preset = preset
         self.options = options
         self.render_options = render_options
+        self.cache_dir = review_cache_dir()
         self.token = secrets.token_urlsafe(32)
         # Only files that really lie inside the folder: a symlink pointing out is not served.
         self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
@@ -164,7 +177,11 @@ class ReviewSession:
                     self._checked_plan(manifest.entries[name])
         except ManifestError as error:
             raise RequestError(400, str(error)) from error
-        write_manifest(self.manifest_path, merged)
+        try:
+            write_manifest(self.manifest_path, merged)
+        except OSError as error:
+            raise RequestError(500, f"{self.manifest_path}: cannot be written "
+                                    f"({error.strerror or error})") from error
         with self._lock:
             self.entries = merged
         return {"manifest": str(self.manifest_path), "command": self.render_command(),
@@ -195,6 +212,16 @@ class ReviewSession:
         except ManifestError as error:
             raise RequestError(400, str(error)) from error
 
+    def _inputs(self, path: Path, options: ClipOptions) -> str:
+        """The digest of everything a photo's plan and clip are made from (fingerprint's:
+        the photo's and its depth map's bytes, the networks present, the code), so that a
+        depth map edited while the page is open gives a new plan and preview."""
+        try:
+            return clip_inputs(path, self._file_hash(path), options.depth, None).digest
+        except OSError as error:
+            raise RequestError(422, f"{error.filename or path}: cannot be read "
+                                    f"({error.strerror or error})") from error
+
     def _file_hash(self, path: Path) -> str:
         stat = path.stat()
         key = (str(path), stat.st_mtime_ns, stat.st_size)
@@ -219,15 +246,19 @@ class ReviewSession:
         """The automatic plan for a photo under an entry's preset, planner and depth (cached)."""
         state = self._photo(name)
         preset, options = self._settings(name, data)
-        key = _digest({"photo": self._file_hash(state.path), "preset": asdict(preset),
-                       "planner": options.planner, "depth": asdict(options.depth)})
-        path = review_cache_dir() / "plans" / f"{key}.json"
+        key = _digest({"inputs": self._inputs(state.path, options), "preset": asdict(preset),
+                       "planner": options.planner})
+        path = self.cache_dir / "plans" / f"{key}.json"
         with self._key_lock(key):
             try:
                 result = json.loads(path.read_text(encoding="utf-8"))
             except (OSError, ValueError):
-                result = self._compute_plan(state.path, preset, options)
-                with atomic_output(path, ".json") as temp_path:
+                try:
+                    result = self._compute_plan(state.path, preset, options)
+                except DepthError as error:  # a bad depth map: the photo's, not the server's
+                    raise RequestError(422, str(error)) from error
+                # not kept on a full disk: computed again next time
+                with contextlib.suppress(OSError), atomic_output(path, ".json") as temp_path:
                     temp_path.write_text(json.dumps(result), encoding="utf-8")
         state.width_px, state.height_px = result["width_px"], result["height_px"]
         return result["entry"]
@@ -317,7 +348,10 @@ class ReviewSession:
                                     [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         else:
             _, options = self._settings(name, self.entries.get(name))
-            _, depth_result, _ = working_depth(photo, state.path, options)
+            try:
+                _, depth_result, _ = working_depth(photo, state.path, options)
+            except DepthError as error:
+                raise RequestError(422, str(error)) from error
             ok, data = cv2.imencode(".png", depth_picture(depth_result.disparity)[..., ::-1])
         if not ok:
             raise RequestError(500, f"{name}: the picture could not be encoded")
@@ -353,7 +387,7 @@ class ReviewSession:
             raise RequestError(400, str(error)) from error
         # The preview preset already carries the entry's preset and duration.
         clip_data = {k: v for k, v in data.items() if k not in ("preset", "duration_s")}
-        key = _digest({"photo": self._file_hash(state.path), "preset": asdict(preset),
+        key = _digest({"inputs": self._inputs(state.path, options), "preset": asdict(preset),
                        "options": asdict(replace(options, threads=1)), "entry": clip_data})
         path = self.preview_path(key)
         with self._key_lock(key):
@@ -368,9 +402,8 @@ class ReviewSession:
                     raise RequestError(422, result.error or f"{name}: preview failed")
         return key
 
-    @staticmethod
-    def preview_path(key: str) -> Path:
-        return review_cache_dir() / "previews" / f"{key}.mp4"
+    def preview_path(self, key: str) -> Path:
+        return self.cache_dir / "previews" / f"{key}.mp4"
 
 
 def _json_body() -> dict[str, Any]:
