@@ -247,8 +247,8 @@ def run_folder(
                 journal.finish(Path(job.source), "queued", 0.0, why)
                 results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
         journal.close()
-        report = RunReport(str(folder), str(output_folder), preset.name, results, notes,
-                           stop.get("by"), options.device, providers_used())
+        report = RunReport(str(folder.absolute()), str(output_folder), preset.name, results,
+                           notes, stop.get("by"), options.device, providers_used())
         try:
             with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
                 temp_path.write_text(report.to_json(), encoding="utf-8")

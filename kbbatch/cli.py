@@ -132,6 +132,13 @@ def _clip_options(options: dict, **more) -> ClipOptions:
     depth = DepthOptions(backend=options.pop("depth_backend"), model=options.pop("depth_model"),
                          adjust=not options.pop("no_adjust"),
                          refine=not options.pop("no_refine"))
+    if depth.backend == "onnx" or depth.model:  # a network asked for and absent: said once
+        try:
+            depth_stage.get_backend(depth, None)
+            if depth.model:
+                model_registry.required_path(depth.model)
+        except (depth_stage.DepthError, model_registry.ModelError) as error:
+            raise click.BadParameter(str(error), param_hint="--depth") from error
     if "device" in options:
         device = options.pop("device")
         if device == "cuda":  # fail before anything is written; auto resolves where it renders

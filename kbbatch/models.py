@@ -255,13 +255,18 @@ def session(path: Path):
     return created
 
 
-def load(name: str):
-    """The session of a registered, cached model; the error says how to get it."""
+def required_path(name: str) -> Path:
+    """The cached file of a registered model; the error says how to get it."""
     path = cached_path(name)
     if path is None:
         raise ModelError(f"model {name} is not in {models_dir()}; run `kbbatch models pull "
                          f"{name}` (or set {MODELS_ENV})")
-    return session(path)
+    return path
+
+
+def load(name: str):
+    """The session of a registered, cached model."""
+    return session(required_path(name))
 
 
 def prepare_input(spec: ModelSpec, image_rgb: np.ndarray, size: tuple[int, int] | None = None

@@ -152,3 +152,42 @@ def test_plan_checks_where_the_manifest_goes_before_planning(tmp_path):
     assert result.exit_code == 1 and isinstance(result.exception, SystemExit)
     assert "afile: output folder is not writable" in result.output
     assert "plan(s) written" not in result.output
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--depth", "onnx"], "no depth network is cached"),
+    (["--depth-model", "midas-v21-small"], "model midas-v21-small is not in"),
+])
+def test_a_depth_network_asked_for_and_absent_is_said_once_at_start(
+        tmp_path, monkeypatch, arguments, message):
+    """It failed every photo with a line that did not name the photo."""
+    from click.testing import CliRunner
+
+    from kbbatch import models
+
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path / "no-models"))
+    (tmp_path / "photos").mkdir()
+    result = CliRunner().invoke(cli.main, [str(tmp_path / "photos"), "-o", str(tmp_path / "o"),
+                                           *arguments])
+    assert result.exit_code == 2 and message in result.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_run_report_names_the_photo_folder_by_its_absolute_path(tmp_path, monkeypatch):
+    import json
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from .conftest import textured_image
+
+    (tmp_path / "photos").mkdir()
+    Image.fromarray(textured_image(180, 320)).save(tmp_path / "photos" / "a.jpg")
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(cli.main, ["photos", "-o", "out", "--depth", "ramp",
+                                           "--planner", "center", "--preset", "preview",
+                                           "--duration", "0.6", "--fps", "10", "--quiet"])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "out" / "kbbatch-report.json").read_text())
+    assert report["folder"] == str(tmp_path / "photos")
+    assert report["output_folder"] == str(tmp_path / "out")

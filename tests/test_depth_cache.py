@@ -109,3 +109,15 @@ def test_a_reader_never_sees_a_partial_entry_while_another_process_writes(monkey
     assert reads > 10, "the reader did not overlap the writer"
     assert len(list(depth_cache.cache_dir().glob("*.npz"))) <= 2, "the bound was not kept"
     assert not list(depth_cache.cache_dir().glob(".*part*")), "a temporary file was left"
+
+
+def test_a_cache_that_cannot_be_written_is_said_once(tmp_path, monkeypatch, caplog):
+    """KBBATCH_CACHE naming a file turned caching off without a word."""
+    (tmp_path / "a-file").write_text("not a folder")
+    monkeypatch.setenv(depth_cache.CACHE_ENV, str(tmp_path / "a-file"))
+    with caplog.at_level(logging.WARNING):
+        depth_cache.store(key(1), result(1))
+        depth_cache.store(key(2), result(2))
+    assert depth_cache.load(key(1)) is None
+    assert caplog.text.count("depth cache cannot be written") == 1
+    assert "a-file" in caplog.text

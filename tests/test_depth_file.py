@@ -140,3 +140,7 @@ def test_a_colour_mapped_picture_is_refused_as_a_depth_map_and_grey_as_colour_is
     assert result.disparity[20, 55] > result.disparity[20, 5]
     np.save(tmp_path / "c.disparity.npy", gradient[None].astype(np.float32))  # (1, H, W)
     assert estimate_disparity(textured_image(40, 60), tmp_path / "c.jpg").backend == "file"
+    records = np.zeros((40, 60), dtype=[("near", "f4"), ("far", "f4")])
+    np.save(tmp_path / "d.depth.npy", records)  # named the photo, as a TypeError
+    with pytest.raises(DepthError, match=r"d.depth.npy: holds .* not numbers"):
+        estimate_disparity(textured_image(40, 60), tmp_path / "d.jpg")

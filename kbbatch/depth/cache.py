@@ -9,6 +9,7 @@ folder is bounded: past the bound the least recently used entries are removed.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import re
@@ -61,9 +62,16 @@ def store(key: str, result: DepthResult) -> None:
         with atomic_output(path, ".npz") as temp_path, temp_path.open("wb") as handle:
             np.savez(handle, disparity=result.disparity, backend=result.backend,
                      source=result.source)
-    except OSError:
-        return  # a cache that cannot be written only costs time
+    except OSError as error:  # a cache that cannot be written only costs time: said once
+        _say_unwritable(str(cache_dir()), error.strerror or str(error))
+        return
     evict(cache_max_bytes(), keep=path)
+
+
+@functools.cache
+def _say_unwritable(folder: str, reason: str) -> None:
+    log.warning("%s: depth cache cannot be written (%s); depth is computed again on every run "
+                "(set %s to another folder)", folder, reason, CACHE_ENV)
 
 
 def cache_max_bytes() -> int:

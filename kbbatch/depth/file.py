@@ -74,7 +74,10 @@ def load_map(path: Path) -> np.ndarray:
         data = data[..., 0]
     if data.ndim != 2:
         raise DepthError(f"{path}: expected a 2D map, got shape {data.shape}")
-    return data.astype(np.float32)
+    try:
+        return data.astype(np.float32)
+    except (TypeError, ValueError) as error:  # records, strings: no depth
+        raise DepthError(f"{path}: holds {data.dtype}, not numbers") from error
 
 
 def load_exr(path: Path) -> np.ndarray:
