@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
+
+
+def _writable(folder: Path) -> bool:
+    """Whether files can be made in folder, or in the folder that would hold it."""
+    return os.access(folder if folder.exists() else folder.parent, os.W_OK)
 
 
 def _compiled_code_cache() -> None:
@@ -12,21 +18,30 @@ def _compiled_code_cache() -> None:
 
     It caches beside the installed sources or in the user's home; a service account with no
     writable home running a root-owned install (the README's systemd unit) had every command
-    fail at import ("cannot cache function"). Then a per-user folder under the temporary
-    directory is used. Set before any kernel module imports numba.
+    fail at import ("cannot cache function"). Then a private folder of this user's under the
+    temporary directory is used, made with mode 0700 and used only while this user owns it and
+    no one else may write it (numba unpickles what it finds there). Set before any kernel
+    module imports numba.
     """
-    if "NUMBA_CACHE_DIR" in os.environ:
+    if "NUMBA_CACHE_DIR" in os.environ or _writable(Path(__file__).parent / "__pycache__"):
         return
-    beside_sources = Path(__file__).parent / "__pycache__"
-    if os.access(beside_sources if beside_sources.is_dir() else beside_sources.parent,
-                 os.W_OK):
+    try:
+        home_cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    except RuntimeError:  # no HOME and no account entry to find one
+        home_cache = None
+    if home_cache is not None and _writable(home_cache / "numba"):
         return
-    home_cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    writable = home_cache if home_cache.exists() else home_cache.parent
-    if os.access(writable, os.W_OK):
-        return
-    per_user = f"kbbatch-numba-{os.getuid()}"
-    os.environ["NUMBA_CACHE_DIR"] = str(Path(tempfile.gettempdir()) / per_user)
+    private = Path(tempfile.gettempdir()) / f"kbbatch-numba-{os.getuid()}"
+    try:
+        private.mkdir(mode=0o700, exist_ok=True)
+        status = private.lstat()
+    except OSError:
+        return  # numba then says why it cannot cache
+    if (stat.S_ISDIR(status.st_mode) and status.st_uid == os.getuid()
+            and not status.st_mode & (stat.S_IWGRP | stat.S_IWOTH)):
+        os.environ["NUMBA_CACHE_DIR"] = str(private)
+    else:
+        os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="kbbatch-numba-")
 
 
 _compiled_code_cache()

@@ -132,13 +132,14 @@ def _clip_options(options: dict, **more) -> ClipOptions:
     depth = DepthOptions(backend=options.pop("depth_backend"), model=options.pop("depth_model"),
                          adjust=not options.pop("no_adjust"),
                          refine=not options.pop("no_refine"))
-    if depth.backend == "onnx" or depth.model:  # a network asked for and absent: said once
-        try:
+    try:  # a network asked for and absent: said once, not at every photo
+        if depth.model:
+            model_registry.required_path(depth.model)
+        elif depth.backend == "onnx":
             depth_stage.get_backend(depth, None)
-            if depth.model:
-                model_registry.required_path(depth.model)
-        except (depth_stage.DepthError, model_registry.ModelError) as error:
-            raise click.BadParameter(str(error), param_hint="--depth") from error
+    except (depth_stage.DepthError, model_registry.ModelError) as error:
+        raise click.BadParameter(str(error), param_hint="--depth-model" if depth.model
+                                 else "--depth") from error
     if "device" in options:
         device = options.pop("device")
         if device == "cuda":  # fail before anything is written; auto resolves where it renders
@@ -264,10 +265,10 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     options = _clip_options(shared)
     try:
         results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
-    except OSError as error:  # the manifest or its previews cannot be written
+    except OSError as error:  # the folder, or where the manifest and previews go
         raise click.ClickException(str(error) if isinstance(error, OutputFolderError) else
-                                   f"{error.filename or manifest_path}: cannot be written "
-                                   f"({error.strerror or error})") from error
+                                   f"{error.filename or manifest_path}: "
+                                   f"{error.strerror or error}") from error
     done = [r for r in results if r.status == "done"]
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
                f"{manifest_path.with_name(manifest_path.stem + '-previews')}")

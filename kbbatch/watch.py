@@ -560,6 +560,10 @@ class JobRunner:
             return None
         destination = unique_destination(self.settings.inbox / folder, path.name)
         depth_map = find_depth_file(path)
+        if depth_map is not None and any(  # b.jpg and b.png share b.depth.png: it stays
+                other.stem == path.stem and other != path
+                for other in scan_folder(self.settings.inbox).photos):
+            depth_map = None
         try:
             move_photo(path, destination)
         except OSError as error:

@@ -171,6 +171,13 @@ def test_a_depth_network_asked_for_and_absent_is_said_once_at_start(
                                            *arguments])
     assert result.exit_code == 2 and message in result.output
     assert not (tmp_path / "o").exists()
+    # a cached model named beside --depth file (maps of one's own) is no error
+    (tmp_path / "no-models").mkdir()
+    (tmp_path / "no-models" / models.REGISTRY["midas-v21-small"].filename).write_bytes(b"net")
+    with_file = CliRunner().invoke(cli.main, [str(tmp_path / "photos"), "-o",
+                                              str(tmp_path / "o"), "--depth", "file",
+                                              "--depth-model", "midas-v21-small"])
+    assert with_file.exit_code == 3 and "no photos here" in with_file.output
 
 
 def test_the_run_report_names_the_photo_folder_by_its_absolute_path(tmp_path, monkeypatch):

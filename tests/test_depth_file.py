@@ -125,6 +125,13 @@ def test_a_map_with_an_upper_case_suffix_is_found_and_a_photo_named_depth_is_a_p
         cv2.imwrite(str(tmp_path / name), textured_image(20, 30))
     assert sorted(p.name for p in list_images(tmp_path)) == [
         "cat.jpg", "dive.depth.40m.jpg", "plain.jpg", "stereo.disparity.test.png"]
+    cv2.imwrite(str(tmp_path / "dog.Depth.Png"), depth)  # any spelling of the suffix
+    assert "dog.Depth.Png" in estimate_disparity(textured_image(100, 160),
+                                                 tmp_path / "dog.jpg").source
+    # The photo's name says "disparity"; its map's own suffix says depth, and rules.
+    cv2.imwrite(str(tmp_path / "stereo.disparity.test.depth.png"), depth)
+    result = estimate_disparity(textured_image(100, 160), tmp_path / "stereo.disparity.test.png")
+    assert result.disparity[40, 70] == pytest.approx(4 * result.disparity[90, 5], rel=1e-3)
 
 
 def test_a_colour_mapped_picture_is_refused_as_a_depth_map_and_grey_as_colour_is_read(

@@ -360,3 +360,5 @@ def test_the_page_follows_a_depth_map_edited_while_open_and_says_what_is_wrong(
     with pytest.raises(RequestError) as refused:
         session.save({"cat.jpg": {"planner": "center"}})
     assert refused.value.status == 500 and "m.json: cannot be written" in refused.value.message
+    session.stop()
+    assert not session.cache_dir.exists()  # the run's own folder goes with it

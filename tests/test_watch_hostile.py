@@ -472,12 +472,18 @@ def test_a_photos_depth_map_goes_to_done_with_it(tmp_path):
     Image.fromarray(textured_image(180, 320, seed=1)).save(inbox / "b.jpg")
     ramp = np.tile(np.linspace(1000, 60000, 320).astype(np.uint16), (180, 1))
     cv2.imwrite(str(inbox / "b.disparity.png"), ramp)
+    for name in ("c.jpg", "c.png"):  # two photos of one map: it stays for the second
+        Image.fromarray(textured_image(180, 320, seed=2)).save(inbox / name)
+    cv2.imwrite(str(inbox / "c.depth.png"), ramp)
     daemon = start_daemon(inbox, outbox, preset, "--depth", "file")
     try:
-        wait_for(lambda: (inbox / "done" / "b.disparity.png").exists(), 120,
-                 "the map moved to done/ beside its photo")
+        wait_for(lambda: len(clips_in(outbox)) == 3
+                 and not [p for p in inbox.iterdir() if p.is_file()], 120,
+                 "three clips, and the inbox empty")
     finally:
         assert stop(daemon) == 0
-    assert clips_in(outbox) == ["b.mp4"]
-    assert sorted(p.name for p in (inbox / "done").iterdir()) == ["b.disparity.png", "b.jpg"]
-    assert not (inbox / "b.disparity.png").exists()
+    clips = clips_in(outbox)
+    assert clips[0] == "b.mp4" and all(clip.startswith("c.") for clip in clips[1:]), clips
+    done = sorted(p.name for p in (inbox / "done").iterdir())
+    assert done == ["b.disparity.png", "b.jpg", "c.depth.png", "c.jpg", "c.png"], done
+    assert "ERROR" not in daemon_log(tmp_path)

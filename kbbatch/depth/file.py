@@ -8,6 +8,8 @@ passes, need the optional OpenEXR package (`pip install "kbbatch[exr]"`).
 
 from __future__ import annotations
 
+import functools
+import os
 from pathlib import Path
 
 import cv2
@@ -15,6 +17,7 @@ import numpy as np
 
 from kbbatch.camera import ASPECT_TOLERANCE
 from kbbatch.depth import DepthError, DepthResult
+from kbbatch.images import DEPTH_MAP_NAME
 from kbbatch.layers import nearest_pixels
 
 DEPTH_FILE_KINDS = ("depth", "disparity")
@@ -26,21 +29,51 @@ pass; Y or R: a map saved as an image); else the only channel there is."""
 
 
 def find_depth_file(photo_path: Path) -> Path | None:
-    """The user's depth or disparity map beside a photo, if any: `.depth.png` in lower, upper
-    or capitalised case (`.depth.PNG` from a camera tool was left out of the photos, as a
-    map, yet never used as one)."""
-    for kind in DEPTH_FILE_KINDS:
-        for suffix in DEPTH_FILE_SUFFIXES:
-            for ending in dict.fromkeys((f".{kind}{suffix}", f".{kind}{suffix.upper()}",
-                                         f".{kind}{suffix}".upper(),
-                                         f".{kind.capitalize()}{suffix}")):
-                candidate = photo_path.with_name(photo_path.stem + ending)
-                try:
-                    if candidate.is_file():
-                        return candidate
-                except OSError:  # a name too long for the file system: no such map exists
-                    continue
+    """The user's depth or disparity map beside a photo, if any: `<stem>.depth.png` and the
+    rest of images.DEPTH_MAP_NAME, in any case (`.depth.PNG` from a camera tool was left out
+    of the photos as a map, yet never used as one). Depth before disparity, PNG before .npy
+    before .exr, the lower-case spelling first."""
+    try:
+        listing = os.stat(photo_path.parent).st_mtime_ns
+    except OSError:
+        return None
+    names = _maps_in(str(photo_path.parent), listing).get(photo_path.stem, ())
+
+    def preference(name: str) -> tuple[int, int, bool]:
+        kind, suffix = _map_kind(name), name.rsplit(".", 1)[1].lower()
+        return (DEPTH_FILE_KINDS.index(kind), DEPTH_FILE_SUFFIXES.index(f".{suffix}"),
+                name != name.lower())
+
+    for name in sorted(names, key=preference):
+        candidate = photo_path.with_name(name)
+        if candidate.is_file():
+            return candidate
     return None
+
+
+@functools.lru_cache(maxsize=8)
+def _maps_in(folder: str, listing_mtime_ns: int) -> dict[str, list[str]]:
+    """The map files of a folder by their photo's stem, listed once while the folder stays
+    unchanged (a batch looks for every photo's map)."""
+    maps: dict[str, list[str]] = {}
+    try:
+        entries = os.listdir(folder)
+    except OSError:
+        return maps
+    for name in entries:
+        found = DEPTH_MAP_NAME.search(name)
+        if found is not None and found.start() > 0:
+            maps.setdefault(name[:found.start()], []).append(name)
+    return maps
+
+
+def _map_kind(name: str) -> str:
+    """"depth" or "disparity": what a map's name says it holds (a manifest may name any file:
+    then depth, unless "disparity" is one of its dotted parts)."""
+    found = DEPTH_MAP_NAME.search(name)
+    if found is not None:
+        return found.group(1).lower()
+    return "disparity" if "disparity" in name.lower().split(".")[1:-1] else "depth"
 
 
 NPY_MAGIC = b"\x93NUMPY"
@@ -68,7 +101,8 @@ def load_map(path: Path) -> np.ndarray:
         data = data.squeeze()  # a (1, H, W) array, as a network's output is saved
     if data.ndim == 3:  # grey saved as colour is fine; a colour-mapped picture is no depth
         colour = data[..., :3]
-        if not (colour == colour[..., :1]).all():
+        if not all(np.array_equal(colour[..., k], colour[..., 0], equal_nan=True)
+                   for k in range(1, colour.shape[-1])):
             raise DepthError(f"{path}: is a colour picture; a depth map has one channel "
                              "(grey levels)")
         data = data[..., 0]
@@ -170,8 +204,7 @@ class FileDepth:
                   ) -> DepthResult:
         if not self.path.is_file():
             raise DepthError(f"{self.path}: depth file not found")
-        parts = self.path.name.lower().split(".")
-        kind = "disparity" if "disparity" in parts[1:-1] else "depth"
+        kind = _map_kind(self.path.name)
         height, width = image.shape[:2]
         data = load_map(self.path)
         return DepthResult(disparity_from_map(data, kind, self.path, height, width), self.name,

@@ -85,15 +85,16 @@ class PhotoState:
     auto: dict[str, Any] | None = None  # the automatic plan as a manifest entry (source px)
 
 
-def review_cache_dir() -> Path:
-    """Where plans and previews are kept between runs; a temporary folder for this run when
-    that cannot be written (every plan, preview and save failed with a PermissionError)."""
+def review_cache_dir() -> Path | None:
+    """Where plans and previews are kept between runs; None when that cannot be written (then
+    a session keeps them for its run: every plan, preview and save once failed with a
+    PermissionError)."""
     folder = depth_cache.cache_dir() / "review"
     try:
         check_writable(folder)
     except OutputFolderError as error:
         log.warning("%s; plans and previews are kept for this run only", error)
-        return Path(tempfile.mkdtemp(prefix="kbbatch-review-"))
+        return None
     return folder
 
 
@@ -114,7 +115,10 @@ class ReviewSession:
         self.preset = preset
         self.options = options
         self.render_options = render_options
-        self.cache_dir = review_cache_dir()
+        kept = review_cache_dir()
+        self._scratch = (tempfile.TemporaryDirectory(prefix="kbbatch-review-") if kept is None
+                         else None)
+        self.cache_dir = kept if self._scratch is None else Path(self._scratch.name)
         self.token = secrets.token_urlsafe(32)
         # Only files that really lie inside the folder: a symlink pointing out is not served.
         self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
@@ -291,6 +295,8 @@ class ReviewSession:
 
     def stop(self) -> None:
         self._worker.shutdown(wait=False, cancel_futures=True)
+        if self._scratch is not None:
+            self._scratch.cleanup()
 
     def photo_json(self, name: str) -> dict[str, Any]:
         state = self.photos[name]
