@@ -265,7 +265,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
     to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
     from kbbatch.fingerprint import file_sha256
-    from kbbatch.images import depth_image_names, unreadable_reason
+    from kbbatch.images import unreadable_reason
     from kbbatch.journal import JournalError, source_fingerprint
 
     try:
@@ -276,8 +276,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
-        name = journal.clip_name(source, content, preferred, output_folder,
-                                 depth_image_names(preferred) if options.save_depth else ())
+        name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
             return ClipResult(str(source), str(output), "skipped", 0.0)

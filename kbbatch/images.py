@@ -122,8 +122,7 @@ def entry_kind(path: Path) -> str | None:
     if path.is_dir():
         return "subfolder"
     if not is_image_file(path):
-        unread = path.suffix.lower() in UNREAD_PHOTO_SUFFIXES and not path.name.startswith(".")
-        return "unread_format" if unread else None
+        return "unread_format" if path.suffix.lower() in UNREAD_PHOTO_SUFFIXES else None
     if path.is_file():
         return "photo"
     if path.is_symlink() and not path.exists():
@@ -261,18 +260,8 @@ OWN_PNG_SOFTWARE = "kbbatch"
 such a name without it is the user's, never replaced."""
 
 
-def write_own_png(path: Path, pixels: np.ndarray) -> None:
-    """Write a PNG (RGB, or single-channel 8 or 16-bit) atomically, marked as kbbatch's."""
-    from PIL.PngImagePlugin import PngInfo
-
-    info = PngInfo()
-    info.add_text("Software", OWN_PNG_SOFTWARE)
-    with atomic_output(Path(path), ".png") as temp_path:
-        Image.fromarray(np.ascontiguousarray(pixels)).save(temp_path, format="PNG", pnginfo=info)
-
-
 def is_own_png(path: Path) -> bool:
-    """Whether a file is a PNG that write_own_png wrote (a link is never one)."""
+    """Whether a file is a PNG that write_image wrote marked as kbbatch's (a link never is)."""
     if path.is_symlink():
         return False
     try:
@@ -282,10 +271,19 @@ def is_own_png(path: Path) -> bool:
         return False
 
 
-def write_image(path: Path, rgb: np.ndarray) -> None:
-    """Write an RGB (or single-channel, 8 or 16-bit) image atomically."""
+def write_image(path: Path, rgb: np.ndarray, own: bool = False) -> None:
+    """Write an RGB (or single-channel, 8 or 16-bit) image atomically; own: a PNG marked as
+    kbbatch's (OWN_PNG_SOFTWARE), which OpenCV cannot write, so Pillow writes it."""
     path = Path(path)
-    data = rgb[..., ::-1] if rgb.ndim == 3 else rgb
     with atomic_output(path, path.suffix) as temp_path:
+        if own:
+            from PIL.PngImagePlugin import PngInfo
+
+            info = PngInfo()
+            info.add_text("Software", OWN_PNG_SOFTWARE)
+            Image.fromarray(np.ascontiguousarray(rgb)).save(temp_path, format="PNG",
+                                                            pnginfo=info)
+            return
+        data = rgb[..., ::-1] if rgb.ndim == 3 else rgb
         if not cv2.imwrite(str(temp_path), np.ascontiguousarray(data)):
             raise OSError(f"{path}: could not be written")

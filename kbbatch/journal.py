@@ -203,12 +203,15 @@ class Journal:
         return job.fingerprint == fingerprint and job.settings == settings and job.clip == clip
 
     def clip_name(self, source: Path, content: str, preferred: str, folder: Path,
-                  companions: tuple[str, ...] = ()) -> str:
+                  with_depth_images: bool = False) -> str:
         """The clip's file name: `preferred` unless a clip of another photo has (or is about
-        to have) it, or a file kbbatch did not write has it or one of its companions' names
-        (the depth images written beside it); then the photo's stem and the start of its
-        sha256. One rule for the batch and the daemon, so no clip of one photo ever replaces
-        a clip of another, nor a file of the user's."""
+        to have) it, or a file kbbatch did not write has it or, with_depth_images, the name of
+        a depth image written beside it (`--save-depth`); then the photo's stem and the start
+        of its sha256. One rule for the batch and the daemon, so no clip of one photo ever
+        replaces a clip of another, nor a file of the user's."""
+        from kbbatch.images import depth_image_names
+
+        companions = depth_image_names(preferred) if with_depth_images else ()
         if self._is_free(preferred, source, content, folder, companions):
             return preferred
         return f"{Path(source).stem}.{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}"

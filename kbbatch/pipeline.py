@@ -497,13 +497,13 @@ def prefetched(items: Iterator, ahead: int) -> Iterator:
 
 def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
-    from kbbatch.images import depth_image_names, write_own_png
+    from kbbatch.images import depth_image_names, write_image
     from kbbatch.review import depth_picture, normalised_disparity
 
     map_name, picture_name = depth_image_names(clip_path.name)
-    write_own_png(clip_path.with_name(map_name),
-                  (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16))
-    write_own_png(clip_path.with_name(picture_name), depth_picture(disparity))
+    write_image(clip_path.with_name(map_name),
+                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16), own=True)
+    write_image(clip_path.with_name(picture_name), depth_picture(disparity), own=True)
 
 
 def plan_summary(plan: Plan, to_photo: float) -> dict:

@@ -34,7 +34,6 @@ from kbbatch.images import (
     UNREAD_FORMAT_REASON,
     atomic_output,
     broken_link_reason,
-    depth_image_names,
     entry_kind,
     is_image_file,
     scan_folder,
@@ -375,9 +374,7 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
-            name = self.journal.clip_name(
-                path, content, preferred, s.outbox,
-                depth_image_names(preferred) if options.save_depth else ())
+            name = self.journal.clip_name(path, content, preferred, s.outbox, options.save_depth)
             output = s.outbox / name
             if self.journal.is_up_to_date(path, fingerprint, settings, output):
                 inbox.forget(path)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import os
+import time
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,9 @@ from kbbatch.layers import nearest_pixels
 
 DEPTH_FILE_KINDS = ("depth", "disparity")
 DEPTH_FILE_SUFFIXES = (".png", ".npy", ".exr")
+
+FRESH_LISTING_S = 2.0
+"""A folder's list of maps is kept while its modification time is at least this old."""
 
 EXR_DEPTH_CHANNELS = ("Z", "depth", "*.Z", "Y", "R")
 """Channels an OpenEXR map is read from, in order of preference (*.Z: a render layer's depth
@@ -37,7 +41,11 @@ def find_depth_file(photo_path: Path) -> Path | None:
         listing = os.stat(photo_path.parent).st_mtime_ns
     except OSError:
         return None
-    names = _maps_in(str(photo_path.parent), listing).get(photo_path.stem, ())
+    # A folder changed within its clock's resolution of now may change again unseen under
+    # the same time (a network share's is 1 to 2 s): its listing is read afresh.
+    recent = time.time_ns() - listing < FRESH_LISTING_S * 1e9
+    maps_in = _maps_in.__wrapped__ if recent else _maps_in
+    names = maps_in(str(photo_path.parent), listing).get(photo_path.stem, ())
 
     def preference(name: str) -> tuple[int, int, bool]:
         kind, suffix = _map_kind(name), name.rsplit(".", 1)[1].lower()
