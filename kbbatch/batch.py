@@ -16,6 +16,7 @@ from pathlib import Path
 
 from kbbatch.depth import DepthError
 from kbbatch.images import (
+    OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
     ImageReadError,
     atomic_output,
@@ -184,6 +185,7 @@ def run_folder(
     notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
              for sub in scan.subfolders]
     notes += [f"{path}: {UNREAD_FORMAT_REASON}" for path in scan.unread_formats]
+    notes += [f"{path}: {OLD_PLAN_SHEET_REASON}" for path in scan.plan_sheets]
     for link in scan.broken_links:
         results.append(ClipResult(str(link), None, "failed", 0.0,
                                   error=f"{link}: {broken_link_reason(link)}"))

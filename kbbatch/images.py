@@ -71,6 +71,23 @@ DEPTH_MAP_NAME = re.compile(r"\.(depth|disparity)\.(png|npy|exr)$", re.IGNORECAS
 Only the end: `dive.depth.40m.jpg` is a photo (any `.depth.` in a name once hid it silently)."""
 
 
+OLD_PLAN_SHEET_SUFFIX = "-contact.jpg"
+"""Versions before 0.x wrote `kbbatch plan`'s contact sheet as `<manifest>-contact.jpg` beside the
+manifest and its `<manifest>-previews/` folder, often in the photo folder: not a photo."""
+
+OLD_PLAN_SHEET_REASON = ("contact sheet of an earlier `kbbatch plan` (beside its previews "
+                         "folder); not a photo, not rendered")
+
+
+def is_old_plan_sheet(path: Path) -> bool:
+    """Whether a file is a contact sheet an earlier `kbbatch plan` left among the photos."""
+    name = path.name
+    if not name.lower().endswith(OLD_PLAN_SHEET_SUFFIX):
+        return False
+    stem = name[: -len(OLD_PLAN_SHEET_SUFFIX)]
+    return (path.parent / (stem + "-previews")).is_dir()
+
+
 def is_image_file(path: Path) -> bool:
     """Whether a file looks like a photo we should process (hidden and depth maps excluded)."""
     name = path.name
@@ -96,6 +113,7 @@ class FolderScan:
     subfolders: list[Path]  # not searched: one folder is one batch
     not_files: list[Path] = field(default_factory=list)  # a photo's name on a pipe, a device
     unread_formats: list[Path] = field(default_factory=list)  # HEIC, raw: not read
+    plan_sheets: list[Path] = field(default_factory=list)  # an old `kbbatch plan`'s sheet
 
 
 def broken_link_reason(link: Path) -> str:
@@ -117,12 +135,15 @@ def entry_kind(path: Path) -> str | None:
     """What a folder entry is to a runner: "subfolder", "photo", or a photo's name on what
     cannot be read as one, "broken_link" or "not_file" (a named pipe, socket or device: reading
     it would block); "gone" for a photo's name with nothing there now; "unread_format" for a
-    photo in a format not read (UNREAD_PHOTO_SUFFIXES); None for anything else. One answer for
-    the batch's scan and the daemon's inbox."""
+    photo in a format not read (UNREAD_PHOTO_SUFFIXES); "plan_sheet" for an old version's
+    contact sheet (is_old_plan_sheet); None for anything else. One answer for the batch's scan
+    and the daemon's inbox."""
     if path.is_dir():
         return "subfolder"
     if not is_image_file(path):
         return "unread_format" if path.suffix.lower() in UNREAD_PHOTO_SUFFIXES else None
+    if is_old_plan_sheet(path):
+        return "plan_sheet"
     if path.is_file():
         return "photo"
     if path.is_symlink() and not path.exists():
@@ -134,13 +155,14 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     """Photos directly inside a folder in name order, and the broken links and subfolders that
     would otherwise be passed over without a word."""
     found: dict[str | None, list[Path]] = {"photo": [], "broken_link": [], "subfolder": [],
-                                           "not_file": [], "unread_format": []}
+                                           "not_file": [], "unread_format": [],
+                                           "plan_sheet": []}
     for path in sorted(folder.iterdir()):
         if path.name.startswith(".") or path.name in ignore:
             continue
         found.setdefault(entry_kind(path), []).append(path)
     return FolderScan(found["photo"], found["broken_link"], found["subfolder"],
-                      found["not_file"], found["unread_format"])
+                      found["not_file"], found["unread_format"], found["plan_sheet"])
 
 
 TRUNCATED_JPEG_ROWS = 16

@@ -800,10 +800,12 @@ class OnnxInpainter:
         self.session = models.load(model)
 
     def __call__(self, image: np.ndarray, mask: np.ndarray) -> np.ndarray:
-        size = self.spec.input_size
+        from kbbatch import models
+
+        size = models.fixed_input_size(self.session) or (self.spec.input_size,) * 2
         height, width = image.shape[:2]
-        small = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
-        small_mask = cv2.resize(mask, (size, size), interpolation=cv2.INTER_NEAREST) > 0
+        small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        small_mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST) > 0
         inputs = self.session.get_inputs()
         feed = {
             inputs[0].name: (small.astype(np.float32) / 255).transpose(2, 0, 1)[None],

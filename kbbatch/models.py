@@ -157,7 +157,7 @@ def share_cores(jobs: int) -> None:
     before the first session, so that N jobs run about `cores` threads, not N x cores."""
     global _jobs_sharing_cores
     _jobs_sharing_cores = max(1, jobs)
-    session.cache_clear()
+    _session.cache_clear()
 
 
 def usable_cores() -> int:
@@ -197,6 +197,63 @@ def check_cache() -> None:
                              f"it, or run `kbbatch models pull {spec.name}`")
     if cached:
         execution_provider()
+    for spec, path in cached:
+        if spec.sha256 is None and spec.role in EXPECTED_TENSORS:
+            try:
+                created = session(path)
+            except Exception as error:  # onnxruntime's own exception types, not exported
+                first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
+                raise ModelError(f"{path}: model {spec.name} cannot be loaded, damaged or not "
+                                 f"an ONNX network ({first_line[:200]}); remove it, or run "
+                                 f"`kbbatch models pull {spec.name}`") from error
+            check_tensors(spec, created, path)
+
+
+EXPECTED_TENSORS: dict[str, tuple[tuple[tuple[int, ...], ...], tuple[tuple[int, ...], ...]]] = {
+    "depth": (((1, 3, 0, 0),), ((1, 0, 0), (1, 1, 0, 0), (0, 0))),
+    "inpaint": (((1, 3, 0, 0), (1, 1, 0, 0)), ((1, 3, 0, 0),)),
+}
+"""The tensors a network of an unpinned role must take and give, by role: the first inputs in
+order (each one shape) and the first output (one of the shapes); 0 is any size. A file we hold no
+checksum for is checked this way at start: another kind of network under the name (a segmenter
+saved as the depth model) failed at every photo with onnxruntime's own words."""
+
+
+def check_tensors(spec: ModelSpec, created, path: Path) -> None:
+    """Raise ModelError, naming the file, when a session's tensors are not its role's."""
+    def fits(shape: list, wanted: tuple[int, ...]) -> bool:
+        return len(shape) == len(wanted) and all(
+            want == 0 or not isinstance(dim, int) or dim == want  # named dims are free
+            for dim, want in zip(shape, wanted, strict=True))
+
+    inputs_wanted, outputs_wanted = EXPECTED_TENSORS[spec.role]
+    inputs, outputs = created.get_inputs(), created.get_outputs()
+    given = [list(tensor.shape) for tensor in inputs]
+    if len(inputs) < len(inputs_wanted) or not all(
+            fits(shape, wanted) for shape, wanted in zip(given, inputs_wanted, strict=False)):
+        raise ModelError(f"{path}: not a {spec.role} network of {spec.name}'s kind: it takes "
+                         f"{_shapes(given)}, expected {_shapes(inputs_wanted)}; remove it, or run "
+                         f"`kbbatch models pull {spec.name}`")
+    if not outputs or not any(fits(list(outputs[0].shape), shape) for shape in outputs_wanted):
+        raise ModelError(f"{path}: not a {spec.role} network of {spec.name}'s kind: it gives "
+                         f"{_shapes([list(outputs[0].shape)] if outputs else [])}, expected "
+                         f"{_shapes(outputs_wanted, ' or ')}; remove it, or run "
+                         f"`kbbatch models pull {spec.name}`")
+
+
+def _shapes(shapes, joiner: str = ", ") -> str:
+    """Shapes as people read them: a free size (named, unknown or 0) is N."""
+    return joiner.join("(" + ", ".join(str(d) if isinstance(d, int) and d > 0 else "N"
+                                     for d in shape) + ")" for shape in shapes) or "nothing"
+
+
+def fixed_input_size(created) -> tuple[int, int] | None:
+    """(width, height) a session's first (NCHW) input is fixed to, or None where it is free:
+    an export at a fixed size takes only that size."""
+    height, width = list(created.get_inputs()[0].shape)[2:4]
+    if isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0:
+        return width, height
+    return None
 
 
 @functools.cache
@@ -233,10 +290,16 @@ def providers_used() -> dict[str, str]:
     return dict(_providers_used)
 
 
-@functools.cache
 def session(path: Path):
-    """An onnxruntime session for a model file, created once per process, on the chosen
+    """An onnxruntime session for a model file, created once per process for each version of
+    the file (a model pulled again while the daemon runs is the one used next), on the chosen
     provider and with this process's share of the cores."""
+    stat = path.stat()
+    return _session(path, stat.st_size, stat.st_mtime_ns)
+
+
+@functools.cache
+def _session(path: Path, size_bytes: int, mtime_ns: int):
     import onnxruntime
 
     options = onnxruntime.SessionOptions()

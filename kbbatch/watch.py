@@ -31,6 +31,7 @@ from kbbatch import models
 from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
+    OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
     atomic_output,
     broken_link_reason,
@@ -97,6 +98,7 @@ UNUSABLE_ENTRIES: dict[str, Callable[[Path], str]] = {
     "broken_link": broken_link_reason,  # a missing target, or links in a loop
     "not_file": lambda path: "not a regular file (a named pipe, socket or device); not read",
     "unread_format": lambda path: UNREAD_FORMAT_REASON,
+    "plan_sheet": lambda path: OLD_PLAN_SHEET_REASON,
 }
 """What the log says, once, of an inbox entry that is no photo to take (images.entry_kind)."""
 

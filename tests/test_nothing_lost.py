@@ -19,7 +19,7 @@ from PIL import Image
 from kbbatch import batch
 from kbbatch.batch import default_jobs, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
-from kbbatch.images import UNREAD_FORMAT_REASON, ImageReadError, read_image
+from kbbatch.images import OLD_PLAN_SHEET_REASON, UNREAD_FORMAT_REASON, ImageReadError, read_image
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
 from kbbatch.pipeline import ClipOptions
 
@@ -409,9 +409,15 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     (folder / "IMG_0002.heic").write_bytes(b"ftypheic")  # a phone's photo, not read
     (folder / "notes.txt").write_text("not a photo at all")
     (folder / "loop2.jpg").symlink_to("loop1.jpg")
+    photo(folder / "crops-contact.jpg", seed=3)  # an old `kbbatch plan`'s sheet...
+    (folder / "crops-previews").mkdir()  # ...beside its previews
+    photo(folder / "team-contact.jpg", seed=4)  # a photo so named, with no previews beside it
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
     by_name = {Path(r.source).name: r for r in report.results}
     assert by_name["a.jpg"].status == "done"
+    assert by_name["team-contact.jpg"].status == "done"
+    assert "crops-contact.jpg" not in by_name
+    assert f"{folder / 'crops-contact.jpg'}: {OLD_PLAN_SHEET_REASON}" in report.notes
     assert "pipe.jpg: is not a regular file" in by_name["pipe.jpg"].error
     assert by_name["gone.jpg"].status == "failed"
     assert "broken symbolic link (its target" in by_name["gone.jpg"].error

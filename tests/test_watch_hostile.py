@@ -176,20 +176,24 @@ def test_subfolders_and_broken_links_in_the_inbox_are_logged(tmp_path):
     (inbox / "gone.jpg").symlink_to(tmp_path / "nowhere.jpg")
     os.mkfifo(inbox / "pipe.jpg")  # read, it would block a worker for good
     (inbox / "phone.heic").write_bytes(b"ftypheic")
+    (inbox / "crops-previews").mkdir()  # an old `kbbatch plan` wrote these two
+    Image.fromarray(textured_image(180, 320, seed=1)).save(inbox / "crops-contact.jpg")
     Image.fromarray(textured_image(180, 320)).save(inbox / "after.jpg")
     daemon = start_daemon(inbox, outbox, preset)
     try:
         wait_for(lambda: "holiday: subfolders are not watched" in daemon_log(tmp_path)
                  and "gone.jpg: broken symbolic link" in daemon_log(tmp_path)
                  and "pipe.jpg: not a regular file" in daemon_log(tmp_path)
-                 and "phone.heic: a photo format kbbatch does not read" in daemon_log(tmp_path),
-                 120, "the four warnings")
+                 and "phone.heic: a photo format kbbatch does not read" in daemon_log(tmp_path)
+                 and "crops-contact.jpg: contact sheet of an earlier" in daemon_log(tmp_path),
+                 120, "the five warnings")
         wait_for(lambda: clips_in(outbox) == ["after.mp4"], 120, "the photo after the pipe")
     finally:
         assert stop(daemon) == 0
     assert "ERROR" not in daemon_log(tmp_path)
-    assert sorted(p.name for p in inbox.iterdir()) == ["done", "gone.jpg", "holiday",
-                                                      "phone.heic", "pipe.jpg"]
+    assert sorted(p.name for p in inbox.iterdir()) == [
+        "crops-contact.jpg", "crops-previews", "done", "gone.jpg", "holiday", "phone.heic",
+        "pipe.jpg"]
 
 
 def test_sigterm_logs_no_error(tmp_path):
