@@ -11,7 +11,7 @@ import json
 import os
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from kbbatch.depth import DepthError
@@ -39,7 +39,10 @@ from kbbatch.pipeline import (
     ClipJob,
     ClipOptions,
     ClipResult,
+    CropTooSmallError,
     LocalExecutor,
+    apply_entry,
+    check_photo_size,
     clip_fingerprint,
     progress_bar,
     remove_stale_scratch,
@@ -170,6 +173,8 @@ def run_folder(
     output_folder = output_folder.absolute()
     scan = scan_folder(folder, ignore=(output_folder.name,)
                        if output_folder.parent == folder.absolute() else ())
+    maps = {photo: manifest.depth_map_of(photo) for photo in scan.photos} if manifest else {}
+    scan = replace(scan, photos=[photo for photo in scan.photos if not maps.get(photo)])
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
                if manifest is not None else [])
     if not scan.photos and not scan.broken_links and not scan.not_files and not missing:
@@ -186,6 +191,8 @@ def run_folder(
              for sub in scan.subfolders]
     notes += [f"{path}: {UNREAD_FORMAT_REASON}" for path in scan.unread_formats]
     notes += [f"{path}: {OLD_PLAN_SHEET_REASON}" for path in scan.plan_sheets]
+    notes += [f"{path}: the depth map of {image} in {manifest.path}; not rendered as a photo"
+              for path, image in maps.items() if image]
     for link in scan.broken_links:
         results.append(ClipResult(str(link), None, "failed", 0.0,
                                   error=f"{link}: {broken_link_reason(link)}"))
@@ -313,38 +320,73 @@ class PlanResult:
     seconds: float = 0.0
 
 
+PLANNED_FIELDS = ("units", "start", "end", "planner")
+"""What `kbbatch plan` writes into an entry (with easing, which a user's setting overrides);
+the rest of an existing entry (exclude, preset, duration, depth) is the user's and kept."""
+
+
+def existing_manifest(manifest_path: Path) -> Manifest | None:
+    """The manifest `plan -o` would write over, or None where there is none. Anything else
+    there (a photo, a hand-written file kbbatch cannot read) is refused, not replaced: the
+    default `-o manifest.json` replaced a photo or a user's edits without a word."""
+    from kbbatch.manifest import ManifestError, load_manifest
+
+    if not manifest_path.exists() and not manifest_path.is_symlink():
+        return None
+    try:
+        return load_manifest(manifest_path)
+    except ManifestError as error:
+        raise OutputFolderError(f"{manifest_path}: exists and is not a manifest kbbatch can "
+                                f"update ({error}); not replaced: give -o another file") from error
+
+
 def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
-                show_progress: bool = True) -> list[PlanResult]:
-    """Plan every photo and write the plans as an editable manifest, with previews."""
+                show_progress: bool = True, replan: bool = False) -> list[PlanResult]:
+    """Plan every photo and write the plans as an editable manifest, with previews.
+
+    Into an existing manifest: its entries stay; a photo whose entry already has crops (or is
+    excluded) keeps it unless replan; a planned photo's entry keeps the user's own fields, and
+    is planned with its preset, duration and depth file."""
     from kbbatch.images import write_image
-    from kbbatch.manifest import plan_to_entry, write_manifest
+    from kbbatch.manifest import ManifestError, plan_to_entry, write_manifest
     from kbbatch.review import contact_sheet, draw_plan
 
     if manifest_path.is_dir():
         raise OutputFolderError(f"{manifest_path}: is a folder; give the manifest's file name")
+    existing = existing_manifest(manifest_path)
     check_writable(manifest_path.parent)  # before the planning, not after it
     preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
     results: list[PlanResult] = []
-    entries: dict[str, dict] = {}
+    entries: dict[str, dict] = ({name: entry.data for name, entry in existing.entries.items()}
+                                if existing else {})
     previews = []
     sources = list_images(folder)
     names = output_names(sources)
     for source in progress_bar(sources, desc="planning", unit="photo",
                                disable=not show_progress):
         started = time.perf_counter()
+        entry = existing.entry(source.name) if existing else None
+        if entry is not None and (entry.excluded or (entry.has_crops and not replan)):
+            results.append(PlanResult(str(source), "kept", entry=entry.data))
+            continue
         try:
+            photo_preset, photo_options = apply_entry(entry, preset, options)
             photo = read_image(source)
-            working, _, depth = working_depth(photo, source, options)
-            plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
-            entry = plan_to_entry(plan, photo.shape[1], working.shape[1])
-            entries[source.name] = entry
+            check_photo_size(photo.shape[1], photo.shape[0], photo_preset, source)
+            working, _, depth = working_depth(photo, source, photo_options)
+            plan = get_planner(photo_options.planner).plan(PlanRequest(working, depth,
+                                                                       photo_preset))
+            planned = plan_to_entry(plan, photo.shape[1], working.shape[1])
+            own = {key: value for key, value in (entry.data if entry else {}).items()
+                   if key not in PLANNED_FIELDS}
+            entries[entry.image if entry else source.name] = planned | own
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"
             write_image(preview_dir / preview_name, preview)
             previews.append(preview)
-            results.append(PlanResult(str(source), "done", entry=entry,
+            results.append(PlanResult(str(source), "done", entry=planned | own,
                                       seconds=time.perf_counter() - started))
-        except (ImageReadError, DepthError) as error:
+        except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
             results.append(PlanResult(str(source), "failed", error=str(error)))
         except Exception as error:  # one photo must never stop the batch
             message = f"{source}: {type(error).__name__}: {error}"

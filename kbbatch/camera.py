@@ -221,9 +221,11 @@ def output_view(
 def working_view(
     scene: SceneGeometry, position: tuple[float, float, float], scale: float = 1.0
 ) -> View:
-    """A full-frame view at the working size (times scale) from a camera position."""
-    width = round(scene.width_px * scale)
-    height = round(scene.height_px * scale)
+    """A full-frame view at the working size (times scale) from a camera position; at least
+    one pixel each way, as an image resized to that scale is (a strip 1024 x 2 px at the
+    planner's quarter scale had a view of no rows, and its depth matched no view)."""
+    width = max(1, round(scene.width_px * scale))
+    height = max(1, round(scene.height_px * scale))
     return View(
         position=position,
         focal_px=scene.focal_px * scale,

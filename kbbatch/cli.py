@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -55,6 +56,17 @@ class DefaultCommandGroup(click.Group):
         return super().parse_args(ctx, args)
 
 
+class NamedPath(click.Path):
+    """A path option that refuses the empty string: `-o "$OUT"` with OUT unset wrote clips,
+    journal and report into the current folder."""
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail("an empty path (an unset variable in a script?); name a folder or file",
+                      param, ctx)
+        return super().convert(value, param, ctx)
+
+
 @click.group(cls=DefaultCommandGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="kbbatch")
 def main() -> None:
@@ -95,7 +107,7 @@ scene_options = _shared(
     click.option("--no-refine", is_flag=True, help="Plain bilinear upsampling of depth."),
 )
 manifest_option = click.option(
-    "--manifest", "manifest_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    "--manifest", "manifest_path", type=NamedPath(exists=True, dir_okay=False, path_type=Path),
     help="JSON manifest of per-image crops and overrides.")
 device_option = click.option(
     "--device", type=click.Choice(DEVICE_NAMES), default="auto", show_default=True,
@@ -168,8 +180,8 @@ executor_options = _shared(
 
 
 @main.command()
-@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("-o", "--output", type=click.Path(file_okay=False, path_type=Path),
+@click.argument("folder", type=NamedPath(exists=True, file_okay=False, path_type=Path))
+@click.option("-o", "--output", type=NamedPath(file_okay=False, path_type=Path),
               help="Output folder (default: FOLDER/kenburns).")
 @preset_options
 @scene_options
@@ -247,16 +259,20 @@ def _load_manifest(path: Path | None):
 
 
 @main.command()
-@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("-o", "--output", "manifest_path", type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("folder", type=NamedPath(exists=True, file_okay=False, path_type=Path))
+@click.option("-o", "--output", "manifest_path", type=NamedPath(dir_okay=False, path_type=Path),
               default=Path("manifest.json"), show_default=True, help="Manifest to write.")
 @preset_options
 @scene_options
+@click.option("--replan", is_flag=True,
+              help="Plan again photos whose entries in an existing manifest already have "
+                   "crops (their other fields are kept).")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
-def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
+def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared) -> None:
     """Plan every photo in FOLDER and write an editable manifest with preview pictures.
 
-    Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`.
+    Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`. Into an existing
+    manifest, entries with crops (edited by hand, or in `kbbatch review`) are kept.
     """
     import shlex
 
@@ -264,14 +280,19 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     preset = _preset(shared)
     options = _clip_options(shared)
     try:
-        results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet)
+        results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet,
+                              replan=replan)
     except OSError as error:  # the folder, or where the manifest and previews go
         raise click.ClickException(str(error) if isinstance(error, OutputFolderError) else
                                    f"{error.filename or manifest_path}: "
                                    f"{error.strerror or error}") from error
     done = [r for r in results if r.status == "done"]
+    kept = [r for r in results if r.status == "kept"]
     click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
                f"{manifest_path.with_name(manifest_path.stem + '-previews')}")
+    if kept:
+        click.echo(f"{len(kept)} entr{'y' if len(kept) == 1 else 'ies'} with crops or "
+                   "excluded kept as they were (--replan plans them again)")
     # The manifest holds crops: the preset, duration and depth options are the command's.
     click.echo("render them with: " + shlex.join([
         "kbbatch", str(folder.absolute()), "--manifest", str(manifest_path.absolute()),
@@ -279,12 +300,12 @@ def plan(folder: Path, manifest_path: Path, quiet: bool, **shared) -> None:
     for result in results:
         if result.status != "done":
             click.echo(f"FAILED {result.error}", err=True)
-    sys.exit(1 if len(done) < len(results) else 0)
+    sys.exit(1 if len(done) + len(kept) < len(results) else 0)
 
 
 @main.command()
-@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--manifest", "manifest_path", type=click.Path(dir_okay=False, path_type=Path),
+@click.argument("folder", type=NamedPath(exists=True, file_okay=False, path_type=Path))
+@click.option("--manifest", "manifest_path", type=NamedPath(dir_okay=False, path_type=Path),
               default=Path("manifest.json"), show_default=True,
               help="Manifest to edit (created on the first save).")
 @preset_options
@@ -408,11 +429,18 @@ def models_list() -> None:
         raise click.ClickException(str(error)) from error
     click.echo(f"onnxruntime: {provider}, {model_registry.session_threads()} thread(s) per "
                f"session (set {model_registry.PROVIDER_ENV} to choose the provider)")
+    problems = []
     for spec in model_registry.REGISTRY.values():
-        cached = "cached" if model_registry.cached_path(spec.name) else "missing"
+        path = model_registry.cached_path(spec.name)
+        problem = model_registry.cache_problem(spec, path) if path else None
+        cached = "missing" if path is None else "DAMAGED" if problem else "cached"
         pinned = "sha256 pinned" if spec.sha256 else "no sha256 registered"
         click.echo(f"{spec.name:<24} {spec.role:<9} {cached:<8} {pinned}; {spec.licence}")
         click.echo(f"{'':<24} {spec.url or 'no single-file download: place ' + spec.filename}")
+        if problem:
+            problems.append(f"{path}: {problem}")
+    for problem in problems:  # a damaged file stops every run: said here too
+        click.echo(problem, err=True)
 
 
 @models.command("pull")
@@ -435,9 +463,14 @@ def _finite_seconds(context: click.Context, param: click.Parameter, value: float
     return value
 
 
+JOBS_PER_CORE_MAX = 4
+"""More local worker processes than this per core only thrash: --jobs 100000 forked until the
+machine stalled, and left an orphan hung after SIGTERM."""
+
+
 @main.command()
-@click.argument("inbox", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--out", "outbox", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.argument("inbox", type=NamedPath(file_okay=False, path_type=Path))
+@click.option("--out", "outbox", required=True, type=NamedPath(file_okay=False, path_type=Path),
               help="Folder the clips are written to (the job journal lives there too).")
 @preset_options
 @scene_options
@@ -465,6 +498,10 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     if inbox.resolve() == outbox.resolve():  # its lock is the output folder's: a busy error
         raise click.UsageError(f"{outbox}: --out must be a folder other than the inbox")
+    local_jobs_max = JOBS_PER_CORE_MAX * (os.cpu_count() or 1)
+    if jobs is not None and jobs > local_jobs_max and shared.get("executor_name") != "ray":
+        raise click.UsageError(f"--jobs {jobs}: at most {local_jobs_max} worker processes "
+                               f"here ({JOBS_PER_CORE_MAX} per core); each one renders a photo")
     preset = _preset(shared)
     options = _clip_options(shared, save_depth=save_depth)
     _check_depth_beside_photos(save_depth, inbox, outbox)
@@ -479,7 +516,7 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
 
 
 @main.command()
-@click.argument("outbox", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("outbox", type=NamedPath(exists=True, file_okay=False, path_type=Path))
 def status(outbox: Path) -> None:
     """Counts and failures from the job journal in OUTBOX."""
     from kbbatch.journal import JOURNAL_NAME

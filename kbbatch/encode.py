@@ -156,6 +156,12 @@ def quality_options(preset: Preset) -> dict[str, object]:
     return options
 
 
+OUTPUT_PLACEHOLDER = "kbbatch-output-placeholder.mp4"
+"""The output name ffmpeg-python builds the command with, then replaced by the real path:
+ffmpeg-python hashes every name as UTF-8, so a folder whose name is not (bytes the file system
+accepts, read back as surrogates) failed every clip; the OS takes such a name as it is."""
+
+
 def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[str]:
     """The ffmpeg command that reads raw RGB frames on stdin and writes the clip."""
     stream = ffmpeg.input(
@@ -171,8 +177,10 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
     }
     if container == "mp4":
         options["movflags"] = "+faststart"
-    out = ffmpeg.output(stream, str(path), **options).global_args("-loglevel", "error", "-nostdin")
-    return ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
+    out = ffmpeg.output(stream, OUTPUT_PLACEHOLDER, **options).global_args(
+        "-loglevel", "error", "-nostdin")
+    command = ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
+    return [str(path) if arg == OUTPUT_PLACEHOLDER else arg for arg in command]
 
 
 def _signal_name(number: int) -> str:

@@ -282,20 +282,37 @@ OWN_PNG_SOFTWARE = "kbbatch"
 such a name without it is the user's, never replaced."""
 
 
-def is_own_png(path: Path) -> bool:
-    """Whether a file is a PNG that write_image wrote marked as kbbatch's (a link never is)."""
+SOURCE_SHA256_KEY = "kbbatch-source-sha256"
+"""The PNG text of a disparity map kbbatch wrote that holds the sha256 of the photo it was made
+from: in a folder that also holds photos, `IMG_1.disparity.png` of one photo was taken for the
+map of another `IMG_1.jpg` (kbbatch.depth.file)."""
+
+
+def own_png_text(path: Path) -> dict[str, str] | None:
+    """The text of a PNG that write_image wrote marked as kbbatch's; None for any other file
+    (a link never is kbbatch's)."""
     if path.is_symlink():
-        return False
+        return None
     try:
         with Image.open(path) as image:
-            return image.format == "PNG" and image.text.get("Software") == OWN_PNG_SOFTWARE
+            if image.format != "PNG" or image.text.get("Software") != OWN_PNG_SOFTWARE:
+                return None
+            return dict(image.text)
     except (OSError, ValueError, UnidentifiedImageError):
-        return False
+        return None
 
 
-def write_image(path: Path, rgb: np.ndarray, own: bool = False) -> None:
+def is_own_png(path: Path) -> bool:
+    """Whether a file is a PNG that write_image wrote marked as kbbatch's (a link never is)."""
+    return own_png_text(path) is not None
+
+
+def write_image(path: Path, rgb: np.ndarray, own: bool = False,
+                text: dict[str, str] | None = None) -> None:
     """Write an RGB (or single-channel, 8 or 16-bit) image atomically; own: a PNG marked as
-    kbbatch's (OWN_PNG_SOFTWARE), which OpenCV cannot write, so Pillow writes it."""
+    kbbatch's (OWN_PNG_SOFTWARE) and carrying `text` too, which OpenCV cannot write, so Pillow
+    writes it. OpenCV only encodes to memory and Python writes the bytes: cv2.imwrite took the
+    path as UTF-8 and crashed the process (a segfault) on a name that is not."""
     path = Path(path)
     with atomic_output(path, path.suffix) as temp_path:
         if own:
@@ -303,9 +320,26 @@ def write_image(path: Path, rgb: np.ndarray, own: bool = False) -> None:
 
             info = PngInfo()
             info.add_text("Software", OWN_PNG_SOFTWARE)
-            Image.fromarray(np.ascontiguousarray(rgb)).save(temp_path, format="PNG",
-                                                            pnginfo=info)
+            for key, value in (text or {}).items():
+                info.add_text(key, value)
+            with temp_path.open("wb") as handle:
+                Image.fromarray(np.ascontiguousarray(rgb)).save(handle, format="PNG",
+                                                                pnginfo=info)
             return
         data = rgb[..., ::-1] if rgb.ndim == 3 else rgb
-        if not cv2.imwrite(str(temp_path), np.ascontiguousarray(data)):
+        try:
+            encoded, buffer = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(data))
+        except cv2.error as error:  # a suffix OpenCV has no encoder for
+            raise OSError(f"{path}: could not be written ({error})") from error
+        if not encoded:
             raise OSError(f"{path}: could not be written")
+        temp_path.write_bytes(buffer.tobytes())
+
+
+def read_image_bytes(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray | None:
+    """An image OpenCV decodes from a file Python reads (None: not one it decodes):
+    cv2.imread takes only UTF-8 names, any path the OS accepts is read here."""
+    data = np.fromfile(path, dtype=np.uint8)
+    if data.size == 0:
+        return None
+    return cv2.imdecode(data, flags)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import unicodedata
 from importlib import resources
 from pathlib import Path
@@ -60,6 +61,9 @@ class ManifestEntry:
                 scale_x = scale_y = 1.0
             width = crop["width"] * scale_x
             height = crop["height"] * scale_y if "height" in crop else width / aspect
+            if min(width, height) < 1:
+                raise ManifestError(f"{self.where(field)}: crop {width:g} x {height:g} px is "
+                                    "smaller than one pixel of the photo")
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
                 raise ManifestError(f"{self.where(field)}: aspect {width / height:.3f} differs "
                                     f"from the output's {aspect:.3f}")
@@ -100,6 +104,13 @@ class Manifest:
         found = self.entries.get(image_name)
         return found if found is not None else self.normal_entries.get(_normal(image_name))
 
+    def depth_map_of(self, path: Path) -> str | None:
+        """The image whose entry names this file as its depth map, if any: such a map in the
+        photo folder is no photo (it was rendered as one)."""
+        resolved = path.resolve()
+        return next((name for name, entry in self.entries.items()
+                     if entry.depth_file == resolved), None)
+
     def unmatched_images(self, photo_names: set[str]) -> list[str]:
         """Keys that name none of the folder's photos (entries apply by plain file name: a
         key with a folder, or naming a file that is not a photo, would be silently unused)."""
@@ -112,14 +123,14 @@ def schema() -> dict[str, Any]:
     return json.loads(resources.files("kbbatch").joinpath("manifest.schema.json").read_text())
 
 
-class NonFiniteNumberError(ValueError):
-    pass
+class ManifestContentError(ValueError):
+    """What JSON can say but a manifest cannot hold (NaN, huge numbers, repeated keys)."""
 
 
 def _refuse_constant(name: str) -> float:
     """Python's JSON reader takes NaN and Infinity, which JSON has not: with them a duration
     or a crop passed the schema and failed later under another field's name."""
-    raise NonFiniteNumberError(f"{name} is not a number a manifest can hold (JSON has no "
+    raise ManifestContentError(f"{name} is not a number a manifest can hold (JSON has no "
                                "NaN or Infinity)")
 
 
@@ -127,22 +138,53 @@ def _finite_float(text: str) -> float:
     """A JSON number; one too large for a float (1e999) would be infinity."""
     value = float(text)
     if not math.isfinite(value):
-        raise NonFiniteNumberError(f"{text} is too large a number for a manifest")
+        raise ManifestContentError(f"{text} is too large a number for a manifest")
     return value
+
+
+INTEGER_DIGITS_MAX = 15
+"""An integer in a manifest has at most this many digits: a longer one is no pixel count or
+duration, and from 4,300 digits Python's reader raised its own error (a traceback)."""
+
+
+def _bounded_int(text: str) -> int:
+    if len(text.lstrip("-")) > INTEGER_DIGITS_MAX:
+        raise ManifestContentError(f"{text[:20]}... is too large a number for a manifest")
+    return int(text)
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """JSON objects whose keys are unique: of two entries for one photo, Python's reader kept
+    the last without a word (an `exclude` above a second entry was ignored)."""
+    found: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in found:
+            raise ManifestContentError(f"key {key!r} appears twice in one object; keep one")
+        found[key] = value
+    return found
+
+
+def parse_manifest_text(text: str) -> Any:
+    """A manifest's JSON, refusing what JSON has not (NaN, Infinity), numbers no manifest
+    holds, and repeated keys; raises ManifestContentError or json.JSONDecodeError."""
+    try:
+        return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float,
+                          parse_int=_bounded_int, object_pairs_hook=_unique_keys)
+    except RecursionError as error:
+        raise ManifestContentError("nested too deeply to be a manifest") from error
 
 
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
     try:
         # utf-8-sig: a byte-order mark (Notepad writes one) is not an error
-        data = json.loads(Path(path).read_text(encoding="utf-8-sig"),
-                          parse_constant=_refuse_constant, parse_float=_finite_float)
+        data = parse_manifest_text(Path(path).read_text(encoding="utf-8-sig"))
     except UnicodeDecodeError as error:
         raise ManifestError(f"{path}: is not UTF-8 text (byte {error.start}); save it as "
                             "UTF-8") from error
     except OSError as error:
         raise ManifestError(f"{path}: cannot be read ({error.strerror})") from error
-    except NonFiniteNumberError as error:
+    except ManifestContentError as error:
         raise ManifestError(f"{path}: {error}") from error
     except json.JSONDecodeError as error:
         raise ManifestError(f"{path}: malformed JSON at line {error.lineno} column "
@@ -205,8 +247,10 @@ def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> di
 
 
 def write_manifest(path: Path, entries: dict[str, dict[str, Any]]) -> None:
+    """Write atomically, through a symbolic link: a manifest kept elsewhere (in a repository)
+    and linked in was replaced by a plain file, and the kept one silently went stale."""
     from kbbatch.images import atomic_output
 
     text = json.dumps({"version": 1, "images": entries}, indent=2)
-    with atomic_output(Path(path), ".json") as temp_path:
+    with atomic_output(Path(os.path.realpath(path)), ".json") as temp_path:
         temp_path.write_text(text + "\n", encoding="utf-8")

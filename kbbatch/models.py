@@ -122,7 +122,11 @@ def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = No
     if spec.url is None:
         raise ModelError(f"{spec.name} has no single-file download; put {spec.filename} "
                          f"in {directory} yourself")
-    directory.mkdir(parents=True, exist_ok=True)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as error:  # a file of that name, or no right to make it
+        raise ModelError(f"{directory}: the model cache cannot be made there "
+                         f"({error.strerror or error})") from error
     try:
         path = Path(pooch.retrieve(
             spec.url, known_hash=f"sha256:{expected}" if expected else None,
@@ -174,39 +178,60 @@ def session_threads() -> int:
 
 
 def check_cache() -> None:
-    """Raise ModelError, naming the file, when a cached model cannot be used: unreadable, or
-    not the registry's file (its sha256 pinned); or when $KBBATCH_PROVIDER names a provider
-    this onnxruntime lacks. Checked once at start: found at each photo instead, the daemon
-    filed every good photo as failed for a damaged download."""
+    """Raise ModelError, naming the file, when a cached model cannot be used (cache_problem),
+    or when $KBBATCH_PROVIDER names a provider this onnxruntime lacks. Checked once at start:
+    found at each photo instead, the daemon filed every good photo as failed for a damaged
+    download. A $KBBATCH_MODELS that is a file is refused; one that does not exist (a typo?)
+    is said, as the run then has no networks."""
+    folder = models_dir()
+    if os.environ.get(MODELS_ENV):
+        if folder.exists() and not folder.is_dir():
+            raise ModelError(f"{MODELS_ENV}={folder}: a file, not a folder of models")
+        if not folder.exists():
+            log.warning("%s=%s: no such folder; running without any network", MODELS_ENV,
+                        folder)
     cached = [(spec, cached_path(spec.name)) for spec in REGISTRY.values()]
     cached = [(spec, path) for spec, path in cached if path is not None]
-    for spec, path in cached:
-        try:
-            if spec.sha256 is None:  # nothing to compare with: readable is all we can ask
-                with path.open("rb") as handle:
-                    handle.read(1)
-                continue
-            stat = path.stat()
-            actual = _sha256(path, stat.st_size, stat.st_mtime_ns)
-        except OSError as error:
-            raise ModelError(f"{path}: model {spec.name} cannot be read "
-                             f"({error.strerror or error})") from error
-        if actual != spec.sha256.lower():
-            raise ModelError(f"{path}: not the file of model {spec.name} (sha256 {actual[:16]}..., "
-                             f"expected {spec.sha256[:16]}...): damaged or another file; remove "
-                             f"it, or run `kbbatch models pull {spec.name}`")
     if cached:
         execution_provider()
     for spec, path in cached:
-        if spec.sha256 is None and spec.role in EXPECTED_TENSORS:
-            try:
-                created = session(path)
-            except Exception as error:  # onnxruntime's own exception types, not exported
-                first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
-                raise ModelError(f"{path}: model {spec.name} cannot be loaded, damaged or not "
-                                 f"an ONNX network ({first_line[:200]}); remove it, or run "
-                                 f"`kbbatch models pull {spec.name}`") from error
-            check_tensors(spec, created, path)
+        problem = cache_problem(spec, path)
+        if problem:
+            raise ModelError(f"{path}: {problem}")
+
+
+def _remedy(spec: ModelSpec) -> str:
+    if spec.url:
+        return f"remove it, or run `kbbatch models pull {spec.name}`"
+    return (f"remove it, or put the real {spec.filename} there (it has no single-file download; "
+            "see the README's Models)")
+
+
+def cache_problem(spec: ModelSpec, path: Path) -> str | None:
+    """Why a cached model file cannot be used, or None: unreadable; not the registry's file
+    (its sha256 pinned); or, with no checksum known, not loadable or not a network of its
+    role (EXPECTED_TENSORS)."""
+    try:
+        if spec.sha256 is not None:
+            stat = path.stat()
+            actual = _sha256(path, stat.st_size, stat.st_mtime_ns)
+            if actual != spec.sha256.lower():
+                return (f"not the file of model {spec.name} (sha256 {actual[:16]}..., expected "
+                        f"{spec.sha256[:16]}...): damaged or another file; {_remedy(spec)}")
+            return None
+        with path.open("rb") as handle:
+            handle.read(1)
+    except OSError as error:
+        return f"model {spec.name} cannot be read ({error.strerror or error})"
+    if spec.role not in EXPECTED_TENSORS:
+        return None
+    try:
+        created = session(path)
+    except Exception as error:  # onnxruntime's own exception types, not exported
+        first_line = (str(error).strip().splitlines() or [""])[0]
+        return (f"model {spec.name} cannot be loaded, damaged or not an ONNX network "
+                f"({first_line[:200]}); {_remedy(spec)}")
+    return tensors_problem(spec, created)
 
 
 EXPECTED_TENSORS: dict[str, tuple[tuple[tuple[int, ...], ...], tuple[tuple[int, ...], ...]]] = {
@@ -219,8 +244,8 @@ checksum for is checked this way at start: another kind of network under the nam
 saved as the depth model) failed at every photo with onnxruntime's own words."""
 
 
-def check_tensors(spec: ModelSpec, created, path: Path) -> None:
-    """Raise ModelError, naming the file, when a session's tensors are not its role's."""
+def tensors_problem(spec: ModelSpec, created) -> str | None:
+    """How a session's tensors differ from its role's, or None."""
     def fits(shape: list, wanted: tuple[int, ...]) -> bool:
         return len(shape) == len(wanted) and all(
             want == 0 or not isinstance(dim, int) or dim == want  # named dims are free
@@ -229,16 +254,16 @@ def check_tensors(spec: ModelSpec, created, path: Path) -> None:
     inputs_wanted, outputs_wanted = EXPECTED_TENSORS[spec.role]
     inputs, outputs = created.get_inputs(), created.get_outputs()
     given = [list(tensor.shape) for tensor in inputs]
+    kind = f"not a {spec.role} network of {spec.name}'s kind"
     if len(inputs) < len(inputs_wanted) or not all(
             fits(shape, wanted) for shape, wanted in zip(given, inputs_wanted, strict=False)):
-        raise ModelError(f"{path}: not a {spec.role} network of {spec.name}'s kind: it takes "
-                         f"{_shapes(given)}, expected {_shapes(inputs_wanted)}; remove it, or run "
-                         f"`kbbatch models pull {spec.name}`")
+        return (f"{kind}: it takes {_shapes(given)}, expected {_shapes(inputs_wanted)}; "
+                f"{_remedy(spec)}")
     if not outputs or not any(fits(list(outputs[0].shape), shape) for shape in outputs_wanted):
-        raise ModelError(f"{path}: not a {spec.role} network of {spec.name}'s kind: it gives "
-                         f"{_shapes([list(outputs[0].shape)] if outputs else [])}, expected "
-                         f"{_shapes(outputs_wanted, ' or ')}; remove it, or run "
-                         f"`kbbatch models pull {spec.name}`")
+        gives = _shapes([list(outputs[0].shape)] if outputs else [])
+        return (f"{kind}: it gives {gives}, expected {_shapes(outputs_wanted, ' or ')}; "
+                f"{_remedy(spec)}")
+    return None
 
 
 def _shapes(shapes, joiner: str = ", ") -> str:

@@ -177,6 +177,23 @@ def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Pre
         f"{smallest_px:.0f} px wide")
 
 
+def check_photo_size(photo_width_px: int, photo_height_px: int, preset: Preset,
+                     photo_path: Path | None) -> None:
+    """Refuse, before depth and planning, a photo whose widest crop of the clip's aspect would
+    be enlarged more than MAX_PHOTO_ENLARGEMENT: any crop the tool chose would be (it is never
+    wider), and a strip a few pixels high (5000 x 5) broke the planner's views, which round to
+    no rows, with a ValueError in place of this message."""
+    widest_px = min(float(photo_width_px), photo_height_px * preset.aspect)
+    enlargement = preset.width_px / widest_px
+    if enlargement > MAX_PHOTO_ENLARGEMENT:
+        raise CropTooSmallError(
+            f"{photo_path or 'photo'}: too small for {preset.width_px} px wide clips (it is "
+            f"{photo_width_px}x{photo_height_px} px: its widest {preset.width_px}:"
+            f"{preset.height_px} crop, {widest_px:.4g} px wide, would be enlarged "
+            f"{enlargement:,.0f}x; the limit is {MAX_PHOTO_ENLARGEMENT:.0f}x): use a larger "
+            "photo, or a preset with a smaller output")
+
+
 def resize_to(image: np.ndarray, width: int, height: int) -> np.ndarray:
     shrinking = width < image.shape[1]
     interpolation = cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR
@@ -192,6 +209,8 @@ def prepare_scene(
     plan: Plan | None = None,
 ) -> PreparedScene:
     """Depth, plan and the extended point cloud for one photo."""
+    if plan is None:  # a manifest's crops are the user's: bound by the cloud size alone
+        check_photo_size(photo.shape[1], photo.shape[0], preset, photo_path)
     clock = time.perf_counter()
     working, depth_result, depth = working_depth(photo, photo_path, options)
     height, width = working.shape[:2]
@@ -495,14 +514,19 @@ def prefetched(items: Iterator, ahead: int) -> Iterator:
         producer.join()
 
 
-def save_depth_images(clip_path: Path, disparity: np.ndarray) -> None:
-    """A 16-bit disparity PNG (for other tools) and a coloured preview (for people)."""
-    from kbbatch.images import depth_image_names, write_image
+def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str | None = None
+                      ) -> None:
+    """A 16-bit disparity PNG (for other tools) and a coloured preview (for people). The map
+    records the sha256 of its photo: found beside another photo of its name, it is not taken
+    for that photo's depth (kbbatch.depth.file)."""
+    from kbbatch.images import SOURCE_SHA256_KEY, depth_image_names, write_image
     from kbbatch.review import depth_picture, normalised_disparity
 
     map_name, picture_name = depth_image_names(clip_path.name)
+    text = {SOURCE_SHA256_KEY: source_sha256} if source_sha256 else None
     write_image(clip_path.with_name(map_name),
-                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16), own=True)
+                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16), own=True,
+                text=text)
     write_image(clip_path.with_name(picture_name), depth_picture(disparity), own=True)
 
 
@@ -522,9 +546,12 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
     try:
         if "preset" in data:
             preset = load_preset(data["preset"], relative_to=entry.manifest.parent)
-        preset = with_overrides(preset, duration_s=data.get("duration_s"))
     except PresetError as error:
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
+    try:
+        preset = with_overrides(preset, duration_s=data.get("duration_s"))
+    except PresetError as error:  # blamed on 'preset' before, which the entry may not have
+        raise ManifestError(f"{entry.where('duration_s')}: {error}") from error
     if "planner" in data:  # a registered name: checked when the manifest loaded
         options = replace(options, planner=data["planner"])
     if entry.depth_file is not None and not entry.depth_file.is_file():
@@ -565,7 +592,9 @@ def make_clip(
         result.depth_backend = prepared.depth_backend
         result.risk = prepared.risk.summary() if prepared.risk else None
         if options.save_depth:
-            save_depth_images(output, prepared.disparity)
+            from kbbatch.fingerprint import file_sha256
+
+            save_depth_images(output, prepared.disparity, file_sha256(source))
         result.plan = plan_summary(prepared.plan, photo.shape[1] / prepared.scene.width_px)
         clock = time.perf_counter()
         result.device = frames_device(options.device)

@@ -47,8 +47,9 @@ from kbbatch.journal import (
     JournalError,
     source_fingerprint,
 )
-from kbbatch.manifest import Manifest, ManifestEntry
+from kbbatch.manifest import Manifest, ManifestEntry, ManifestError, load_manifest
 from kbbatch.outputs import (
+    OutputFolderError,
     check_writable,
     clip_name_note,
     output_names,
@@ -300,6 +301,41 @@ class InboxTracker:
         return arrival.renamed or time.monotonic() - arrival.since >= self.settle_s
 
 
+class ManifestFollower:
+    """The daemon's manifest, read again when its file changes: an exclude or a crop saved
+    from `kbbatch review` while the daemon ran was ignored until a restart. A change that does
+    not load is logged once and the manifest as it was stays in force."""
+
+    def __init__(self, manifest: Manifest | None) -> None:
+        self.current = manifest
+        self.stamp = self._stamp() if manifest else None
+
+    def _stamp(self) -> tuple[int, int] | None:
+        try:
+            stat = self.current.path.stat()
+        except OSError:
+            return None
+        return stat.st_mtime_ns, stat.st_size
+
+    def get(self) -> Manifest | None:
+        if self.current is None:
+            return None
+        stamp = self._stamp()
+        if stamp == self.stamp:
+            return self.current
+        self.stamp = stamp
+        if stamp is None:
+            log.error("%s: gone or unreadable; still following it as it was", self.current.path)
+            return self.current
+        try:
+            self.current = load_manifest(self.current.path)
+        except ManifestError as error:
+            log.error("%s; still following the manifest as it was", error)
+            return self.current
+        log.info("%s: changed; read again", self.current.path)
+        return self.current
+
+
 class JobRunner:
     """The clips of settled photos: submission to the pool, results, worker deaths, the photos'
     moves to done/ or failed/ and the failure reports; the journal records every step."""
@@ -316,6 +352,7 @@ class JobRunner:
         self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
         self.encoder_stops: dict[Path, int] = {}  # photos whose encoder a signal stopped
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
+        self.manifest = ManifestFollower(settings.manifest)
 
     def recover(self) -> None:
         """After a crash: drop partial clips, and settle jobs whose clip was already renamed."""
@@ -347,6 +384,12 @@ class JobRunner:
                      stopping: threading.Event) -> None:
         """Start the settled photos, --jobs at a time; a photo whose worker died runs alone."""
         s = self.settings
+        before, manifest = self.manifest.current, self.manifest.get()
+        if manifest is not before:  # photos it excluded, or maps it named, may be wanted now
+            for path in sorted(inbox.mentioned):
+                inbox.mentioned.discard(path)
+                if path.exists():
+                    self.requeue(path, False)
         busy = {job.path for job in self.in_flight.values()} | set(self.suspects)
         for path in sorted(inbox.arrivals, key=lambda p: (p not in self.worker_deaths, p)):
             if len(self.in_flight) >= s.jobs or stopping.is_set():
@@ -358,12 +401,15 @@ class JobRunner:
             if path in busy or not inbox.is_ready(path):
                 continue
             renamed = inbox.arrivals[path].renamed
-            entry = s.manifest.entry(path.name) if s.manifest else None
-            if entry is not None and entry.excluded:  # as the batch does: not rendered
+            entry = manifest.entry(path.name) if manifest else None
+            map_of = manifest.depth_map_of(path) if manifest else None
+            if (entry is not None and entry.excluded) or map_of:  # as the batch: not rendered
                 inbox.forget(path)
                 if path not in inbox.mentioned:
                     inbox.mentioned.add(path)
-                    log.info("%s: excluded by the manifest; left in the inbox", path.name)
+                    log.info("%s: %s; left in the inbox", path.name,
+                             f"the depth map of {map_of} in the manifest" if map_of
+                             else "excluded by the manifest")
                 continue
             try:
                 fingerprint = source_fingerprint(path)
@@ -619,6 +665,11 @@ class Daemon:
         s = self.settings
         check_writable(s.outbox)
         s.inbox.mkdir(parents=True, exist_ok=True)
+        for name in (DONE_FOLDER, FAILED_FOLDER):  # else a traceback after the first clip
+            where = s.inbox / name
+            if (where.exists() or where.is_symlink()) and not where.is_dir():
+                raise OutputFolderError(f"{where}: not a folder; the daemon moves finished "
+                                        f"photos into {name}/ in the inbox: move this file away")
         locks = [FolderLock(s.inbox, "watching"), FolderLock(s.outbox, "writing clips into")]
         try:
             return self.serve()

@@ -160,7 +160,7 @@ class CoarseScene:
         view = working_view(self.scene, camera_position(plan, self.scene, 1.0), self.scale)
         disparity_scale = self.scene.focal_px * paper.DISPARITY_MAX_PX
         uncovered = ~coverage(self.cloud, view, disparity_scale) & region
-        return float(uncovered.sum() / region.sum())
+        return float(uncovered.sum() / max(int(region.sum()), 1))  # an empty region: none
 
 
 def plan_disocclusion(request: PlanRequest, plan: Plan) -> float:

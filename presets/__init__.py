@@ -98,6 +98,8 @@ def preset_from_mapping(data: dict[str, Any], source: str) -> Preset:
     for f in fields(Preset):
         if f.type in ("float", float):
             values[f.name] = float(values[f.name])
+        elif f.type in ("int", int):  # JSON Schema counts 640.0 an integer; ffmpeg does not
+            values[f.name] = int(values[f.name])
     return Preset(**values)
 
 
@@ -151,7 +153,12 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
     if base is None:
         return data, source
     data.setdefault("description", f"{base} with changes")  # not the base's own words
-    base_data, _ = _read(base, folder, (*chain, source))
+    try:
+        base_data, _ = _read(base, folder, (*chain, source))
+    except PresetError as error:
+        if str(error).startswith(source):  # already names this file (a loop)
+            raise
+        raise PresetError(f"{source}: setting 'base': {error}") from error
     return base_data | data, source
 
 

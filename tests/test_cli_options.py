@@ -164,6 +164,7 @@ def test_a_depth_network_asked_for_and_absent_is_said_once_at_start(
     from click.testing import CliRunner
 
     from kbbatch import models
+    from tests.test_models import tiny_depth_model
 
     monkeypatch.setenv(models.MODELS_ENV, str(tmp_path / "no-models"))
     (tmp_path / "photos").mkdir()
@@ -173,7 +174,8 @@ def test_a_depth_network_asked_for_and_absent_is_said_once_at_start(
     assert not (tmp_path / "o").exists()
     # a cached model named beside --depth file (maps of one's own) is no error
     (tmp_path / "no-models").mkdir()
-    (tmp_path / "no-models" / models.REGISTRY["midas-v21-small"].filename).write_bytes(b"net")
+    (tmp_path / "no-models" / models.REGISTRY["midas-v21-small"].filename).write_bytes(
+        tiny_depth_model())
     with_file = CliRunner().invoke(cli.main, [str(tmp_path / "photos"), "-o",
                                               str(tmp_path / "o"), "--depth", "file",
                                               "--depth-model", "midas-v21-small"])

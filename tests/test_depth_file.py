@@ -1,6 +1,12 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from kbbatch.depth import DepthError, estimate_disparity
 
@@ -151,3 +157,95 @@ def test_a_colour_mapped_picture_is_refused_as_a_depth_map_and_grey_as_colour_is
     np.save(tmp_path / "d.depth.npy", records)  # named the photo, as a TypeError
     with pytest.raises(DepthError, match=r"d.depth.npy: holds .* not numbers"):
         estimate_disparity(textured_image(40, 60), tmp_path / "d.jpg")
+
+
+def test_a_map_beside_a_photo_in_a_folder_whose_name_is_not_utf8_is_read(tmp_path):
+    """cv2.imread took the name as UTF-8 and crashed the process (a segfault): the reading
+    runs in a child process, so a crash fails the test, not the test run."""
+    folder = tmp_path / os.fsdecode(b"caf\xe9")
+    folder.mkdir()
+    depth = np.full((50, 80), 4000, np.uint16)
+    depth[10:30, 20:50] = 1000
+    Image.fromarray(depth).save(folder / "scene.depth.png")
+    script = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "import numpy as np\n"
+        "from kbbatch.depth import estimate_disparity\n"
+        "result = estimate_disparity(np.zeros((100, 160, 3), np.uint8),\n"
+        "                            Path(sys.argv[1]) / 'scene.jpg')\n"
+        "print(result.backend, round(float(result.disparity[40, 70] / "
+        "result.disparity[90, 5]), 3))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, os.fsencode(folder)],
+                          cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["file", "4.0"]
+
+
+def test_a_map_kbbatch_saved_from_another_photo_is_not_taken_for_this_ones(
+        tmp_path, quick_preset, monkeypatch, caplog):
+    """--save-depth into a folder of photos left `IMG_1.disparity.png` of one photo beside
+    another `IMG_1.jpg`, which a later run took for its depth map."""
+    import logging
+    import shutil
+
+    from kbbatch.batch import run_folder
+    from kbbatch.depth import DepthOptions
+    from kbbatch.images import is_own_png, write_image
+    from kbbatch.pipeline import ClipOptions
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(tmp_path / "no-models"))
+    first, second = tmp_path / "xa", tmp_path / "xb"
+    first.mkdir()
+    second.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(first / "IMG_1.jpg")
+    Image.fromarray(textured_image(180, 320, seed=1)).save(second / "IMG_1.jpg")
+    saving = ClipOptions(planner="center", depth=DepthOptions(backend="popup"), threads=2,
+                         save_depth=True)
+    assert run_folder(first, second, quick_preset, saving, False).results[0].status == "done"
+    saved = second / "IMG_1.disparity.png"
+    assert is_own_png(saved)
+
+    with caplog.at_level(logging.WARNING):
+        report = run_folder(second, tmp_path / "out", quick_preset,
+                            ClipOptions(planner="center", threads=2), False)
+    assert report.results[0].status == "done"
+    assert report.results[0].depth_backend != "file"
+    said = [r.getMessage() for r in caplog.records if "not used as the depth map" in
+            r.getMessage()]
+    assert said == [f"{saved}: not used as the depth map of {second / 'IMG_1.jpg'}: kbbatch "
+                    "wrote it (--save-depth) from another photo"]
+    with pytest.raises(DepthError, match="--depth file needs"):
+        estimate_disparity(textured_image(180, 320, seed=1), second / "IMG_1.jpg",
+                           DepthOptions(backend="file"))
+
+    # beside the photo it was made from, it is that photo's depth
+    shutil.copy(saved, first / "IMG_1.disparity.png")
+    assert estimate_disparity(textured_image(180, 320), first / "IMG_1.jpg").backend == "file"
+
+    # edited in an editor, it loses kbbatch's mark and is the user's map: used
+    with Image.open(saved) as edited:
+        edited.load()
+    edited.save(saved)
+    assert not is_own_png(saved)
+    assert estimate_disparity(textured_image(180, 320, seed=1),
+                              second / "IMG_1.jpg").backend == "file"
+
+    # a map kbbatch wrote that records no photo (an earlier version's) is not taken either
+    write_image(saved, np.arange(180 * 320, dtype=np.uint16).reshape(180, 320), own=True)
+    assert estimate_disparity(textured_image(180, 320, seed=1),
+                              second / "IMG_1.jpg").backend != "file"
+
+
+def test_an_openexr_map_in_a_folder_whose_name_is_not_utf8_is_read(tmp_path):
+    folder = tmp_path / os.fsdecode(b"caf\xe9")
+    folder.mkdir()
+    depth = np.full((40, 60), 8.0, np.float32)
+    depth[10:30, 20:40] = 2.0
+    write_exr(tmp_path / "ascii.exr", {"Z": depth})
+    (folder / "scene.depth.exr").write_bytes((tmp_path / "ascii.exr").read_bytes())
+    result = estimate_disparity(textured_image(40, 60), folder / "scene.jpg")
+    assert result.backend == "file"
+    assert result.disparity[20, 30] == pytest.approx(4 * result.disparity[2, 2], rel=1e-3)

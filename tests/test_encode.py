@@ -190,3 +190,16 @@ def test_nvenc_takes_a_constant_quality_where_x264_takes_crf():
     assert nvenc[nvenc.index("-cq") + 1] == str(slideshow.crf)
     assert nvenc[nvenc.index("-rc") + 1] == "vbr"
     assert nvenc[nvenc.index("-preset") + 1] == "p5"
+
+
+def test_a_clip_is_written_into_a_folder_whose_name_is_not_utf8(tmp_path):
+    """ffmpeg-python hashes the output name as UTF-8: every clip into such a folder failed."""
+    preset = with_overrides(load_preset("preview"), duration_s=0.4, fps=10.0)
+    folder = tmp_path / os.fsdecode(b"outB\xff")
+    folder.mkdir()
+    frame = np.full((preset.height_px, preset.width_px, 3), 90, np.uint8)
+    path = folder / os.fsdecode(b"clip\xe9.mp4")
+    assert encode_frames(path, [frame] * preset.frames_total, preset) == preset.frames_total
+    info = probe(path)
+    assert (info.width_px, info.height_px) == (preset.width_px, preset.height_px)
+    assert len(list(decode_frames(path, info.width_px, info.height_px))) == preset.frames_total

@@ -1,8 +1,20 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
 
-from kbbatch.images import ImageReadError, is_image_file, list_images, read_image
+from kbbatch.images import (
+    ImageReadError,
+    is_image_file,
+    is_own_png,
+    list_images,
+    own_png_text,
+    read_image,
+)
 
 from .conftest import textured_image
 
@@ -65,3 +77,35 @@ def test_listing_takes_photos_of_any_case_and_skips_depth_maps(tmp_path):
         (tmp_path / name).write_bytes(b"x")
     assert [p.name for p in list_images(tmp_path)] == ["a.JPG", "b.webp", "c.TIFF", "f.bmp"]
     assert not is_image_file(tmp_path / "x.disparity.png")
+
+
+def test_images_are_written_and_read_under_a_folder_name_that_is_not_utf8(tmp_path):
+    """cv2.imwrite took the name as UTF-8 and crashed the process (a segfault), so the
+    writing runs in a child process: a crash fails the test, not the test run."""
+    folder = tmp_path / os.fsdecode(b"caf\xe9")
+    script = (
+        "import sys, numpy as np\n"
+        "from pathlib import Path\n"
+        "from kbbatch.images import write_image\n"
+        "folder = Path(sys.argv[1])\n"
+        "picture = (np.arange(30 * 40 * 3) % 251).astype(np.uint8).reshape(30, 40, 3)\n"
+        "write_image(folder / 'plain.png', picture)\n"
+        "write_image(folder / 'plain.jpg', picture)\n"
+        "write_image(folder / 'grey16.png', np.full((30, 40), 40000, np.uint16))\n"
+        "write_image(folder / 'own.png', picture, own=True,\n"
+        "            text={'Comment': 'kept'})\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script, os.fsencode(folder)],
+                          cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    picture = (np.arange(30 * 40 * 3) % 251).astype(np.uint8).reshape(30, 40, 3)
+    assert np.array_equal(read_image(folder / "plain.png"), picture)
+    assert read_image(folder / "plain.jpg").shape == (30, 40, 3)
+    with Image.open(folder / "grey16.png") as grey:
+        assert grey.mode.startswith("I") and grey.getpixel((0, 0)) == 40000
+    assert is_own_png(folder / "own.png") and not is_own_png(folder / "plain.png")
+    assert own_png_text(folder / "own.png")["Comment"] == "kept"
+    assert sorted(p.name for p in folder.iterdir()) == ["grey16.png", "own.png", "plain.jpg",
+                                                         "plain.png"]  # no temporary left
+

@@ -2,6 +2,7 @@
 
 import hashlib
 import http.server
+import re
 import threading
 from dataclasses import replace
 
@@ -212,3 +213,35 @@ def test_a_depth_network_exported_at_a_fixed_size_is_fed_that_size(tmp_path, mon
     result = estimate_disparity(image, None, DepthOptions(backend="auto", adjust=False))
     assert result.source == "depth-anything-v2-small" and result.disparity.shape == (120, 180)
     assert result.disparity[:, :80].min() > result.disparity[:, 100:].max()
+
+
+def test_a_models_folder_that_is_a_file_or_missing_is_said(tmp_path, monkeypatch, caplog):
+    from click.testing import CliRunner
+
+    from kbbatch.cli import main
+
+    (tmp_path / "afile").write_text("not a folder")
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path / "afile"))
+    with pytest.raises(models.ModelError, match=r"KBBATCH_MODELS=.*afile: a file, not a folder"):
+        models.check_cache()
+    pulled = CliRunner().invoke(main, ["models", "pull", "yolox-nano"])
+    assert pulled.exit_code == 1 and "afile: the model cache cannot be made there" in \
+        pulled.output and "Traceback" not in pulled.output
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path / "modles"))  # a typo
+    models.check_cache()
+    assert "modles: no such folder; running without any network" in caplog.text
+
+
+def test_models_list_says_damaged_and_how_to_mend_a_model_with_no_download(tmp_path,
+                                                                          monkeypatch):
+    from click.testing import CliRunner
+
+    from kbbatch.cli import main
+
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    spec = models.REGISTRY["isnet-dis-medium"]
+    (tmp_path / spec.filename).write_bytes(b"garbage")
+    listed = CliRunner().invoke(main, ["models", "list"])
+    assert re.search(r"isnet-dis-medium +salient +DAMAGED", listed.output), listed.output
+    assert "put the real isnet_dis_medium.onnx there (it has no single-file download" in \
+        listed.output  # `models pull` cannot fetch it: that advice was a dead end

@@ -2,6 +2,7 @@
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from kbbatch import paper
 from kbbatch.batch import plan_folder, run_folder
 from kbbatch.camera import Crop, depth_from_disparity
 from kbbatch.manifest import ManifestError, load_manifest, plan_to_entry
+from kbbatch.outputs import OutputFolderError
 from kbbatch.pipeline import ClipOptions
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.planners.auto import plan_disocclusion
@@ -172,6 +174,31 @@ def test_nan_and_infinity_in_a_manifest_are_refused_by_name(tmp_path, value):
         load_manifest(path)
 
 
+@pytest.mark.parametrize("text, reason", [
+    ('{"version": 1, "images": {"a.jpg": {"exclude": true}, "a.jpg": {"planner": "center"}}}',
+     r"key 'a.jpg' appears twice"),  # the exclude was dropped without a word
+    ('{"version": 1, "images": {"a.jpg": {"duration_s": 1' + "0" * 5000 + "}}}",
+     r"10000000000000000000\.\.\. is too large a number"),  # Python's reader: traceback
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),  # RecursionError
+])
+def test_json_a_manifest_cannot_hold_is_refused_naming_it(tmp_path, text, reason):
+    path = tmp_path / "m.json"
+    path.write_text(text)
+    with pytest.raises(ManifestError, match=rf"m.json: {reason}"):
+        load_manifest(path)
+
+
+def test_a_crop_under_one_pixel_is_refused_naming_the_field(tmp_path):
+    path = tmp_path / "m.json"
+    crop = {"center_x": 160, "center_y": 90, "width": 1e-300}
+    path.write_text(json.dumps({"version": 1, "images": {"a.jpg": {
+        "start": crop, "end": crop | {"width": 100}}}}))
+    entry = load_manifest(path).entry("a.jpg")
+    with pytest.raises(ManifestError, match=r"m.json: image 'a.jpg': field 'start': crop "
+                                            r"1e-300 x 5.6\d*e-301 px is smaller than one pixel"):
+        entry.plan(320, 180, 320, 16 / 9, "linear")
+
+
 def test_a_missing_depth_file_of_an_entry_names_the_manifest_image_and_field(tmp_path,
                                                                           quick_preset):
     folder = tmp_path / "in"
@@ -220,6 +247,46 @@ def test_crop_outside_the_photo_is_refused(tmp_path):
         entry.plan(1000, 600, 1024, 16 / 9, "linear")
 
 
+def test_plan_into_an_existing_file_never_loses_what_is_there(tmp_path, quick_preset):
+    """`plan -o` replaced a photo, and a manifest's excludes, presets, durations and hand-made
+    crops, with its own plans (the default -o is manifest.json in the current folder)."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for seed, name in enumerate(("a.jpg", "b.jpg", "c.jpg", "d.jpg")):
+        Image.fromarray(textured_image(180, 320, seed)).save(folder / name)
+    options = ClipOptions(planner="center", threads=2)
+    photo_before = (folder / "a.jpg").read_bytes()
+    with pytest.raises(OutputFolderError, match=r"a.jpg: exists and is not a manifest kbbatch "
+                                                r"can update .*not replaced"):
+        plan_folder(folder, folder / "a.jpg", quick_preset, options, show_progress=False)
+    assert (folder / "a.jpg").read_bytes() == photo_before
+    hand_crop = {"center_x": 150.0, "center_y": 90.0, "width": 200.0}
+    kept = {"a.jpg": {"exclude": True},
+            "b.jpg": {"start": hand_crop, "end": hand_crop | {"width": 160.0}},
+            "c.jpg": {"preset": "square", "duration_s": 2.0},
+            "gone.jpg": {"planner": "2d"}}
+    repository = tmp_path / "repo"
+    repository.mkdir()
+    (repository / "m.json").write_text(json.dumps({"version": 1, "images": kept}))
+    manifest_path = tmp_path / "m.json"
+    manifest_path.symlink_to(repository / "m.json")  # kept in a repository, linked in
+    results = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
+    assert [r.status for r in results] == ["kept", "kept", "done", "done"]
+    assert manifest_path.is_symlink()  # written through the link, not over it
+    written = json.loads((repository / "m.json").read_text())["images"]
+    for name in ("a.jpg", "b.jpg", "gone.jpg"):
+        assert written[name] == kept[name], name
+    c_entry = written["c.jpg"]
+    assert (c_entry["preset"], c_entry["duration_s"]) == ("square", 2.0)
+    assert c_entry["end"]["width"] == pytest.approx(c_entry["end"]["height"])  # square's plan
+    assert written["d.jpg"]["start"]["width"] > 0
+    results = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False,
+                          replan=True)
+    assert [r.status for r in results] == ["kept", "done", "done", "done"]  # exclude stays
+    written = json.loads((repository / "m.json").read_text())["images"]
+    assert written["b.jpg"]["start"] != hand_crop and written["c.jpg"]["duration_s"] == 2.0
+
+
 def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
     folder = tmp_path / "photos"
     folder.mkdir()
@@ -251,3 +318,52 @@ def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
         got = result.plan[field]
         assert got["center_x_px"] == pytest.approx(expected.center_x_px, abs=1e-6)
         assert got["width_px"] == pytest.approx(expected.width_px, abs=1e-6)
+
+
+def test_a_depth_map_the_manifest_names_in_the_photo_folder_is_no_photo(tmp_path, quick_preset):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    ramp = (np.linspace(0, 255, 180)[:, None] * np.ones((1, 320))).astype(np.uint8)
+    Image.fromarray(ramp).save(folder / "a_map.png")  # not named <stem>.depth.png
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1,
+                                    "images": {"a.jpg": {"depth": "photos/a_map.png"}}}))
+    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
+                        show_progress=False, manifest=load_manifest(manifest))
+    assert [Path(r.source).name for r in report.results] == ["a.jpg"]
+    assert report.results[0].status == "done"
+    assert f"{folder / 'a_map.png'}: the depth map of a.jpg in {manifest}; not rendered as " \
+           "a photo" in report.notes
+
+
+def test_an_empty_output_path_is_refused_not_the_current_folder(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from kbbatch.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "photos").mkdir()
+    Image.fromarray(textured_image(180, 320)).save(tmp_path / "photos" / "a.jpg")
+    for command in (["photos", "-o", ""], ["plan", "photos", "-o", ""], ["status", ""]):
+        result = CliRunner().invoke(main, command)
+        assert result.exit_code == 2 and "an empty path" in result.output, command
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
+
+
+def test_a_duration_out_of_bounds_is_blamed_on_duration_s(tmp_path, quick_preset):
+    from kbbatch.pipeline import apply_entry
+
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"a.jpg": {"duration_s": 1e6}}}))
+    with pytest.raises(ManifestError, match=r"m.json: image 'a.jpg': field 'duration_s': "):
+        apply_entry(load_manifest(manifest).entry("a.jpg"), quick_preset, ClipOptions())
+
+
+def test_plan_says_a_photo_is_too_small_as_the_render_would(tmp_path, quick_preset):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.new("RGB", (5000, 5), (100, 150, 200)).save(folder / "strip.png")
+    [result] = plan_folder(folder, tmp_path / "m.json", quick_preset, ClipOptions(),
+                           show_progress=False)
+    assert result.status == "failed" and "strip.png: too small for" in result.error

@@ -76,6 +76,26 @@ def test_errors_name_the_file_and_the_setting(tmp_path, line, message):
         load_preset(path)
 
 
+@pytest.mark.parametrize("base, message", [
+    ("4K", r"mine.toml: setting 'base': unknown preset '4K'"),  # the file was not named
+    ("", r"mine.toml: setting 'base': '' should be non-empty"),  # was "a folder": the cwd
+    ("./gone.toml", r"mine.toml: setting 'base': .*gone.toml: preset file not found"),
+])
+def test_a_bad_base_is_blamed_on_the_file_that_names_it(tmp_path, base, message):
+    path = write(tmp_path / "mine.toml", f'base = "{base}"\nfps = 10\n')
+    with pytest.raises(PresetError, match=message):
+        load_preset(path)
+
+
+def test_whole_numbers_written_with_a_point_are_whole_numbers(tmp_path):
+    """`width_px = 640.0` passed the schema (a JSON Schema integer) and then failed at every
+    photo with "'float' object cannot be interpreted as an integer"."""
+    preset = load_preset(write(tmp_path / "mine.toml", 'base = "preview"\nwidth_px = 640.0\n'
+                                                       "height_px = 360.0\ncrf = 30.0\n"))
+    assert (preset.width_px, preset.height_px, preset.crf) == (640, 360, 30)
+    assert all(type(value) is int for value in (preset.width_px, preset.height_px, preset.crf))
+
+
 def test_reference_preset_is_the_papers_automatic_clip():
     reference = load_preset("reference")  # section 3.4: 75 linear steps at 25 fps
     assert (reference.frames_forward, reference.fps, reference.easing) == (75, 25, "linear")

@@ -225,7 +225,19 @@ def test_malformed_bodies_and_foreign_hosts_are_refused(served, manifest):
     assert unknown.status == 404 and "error" in unknown.json()
     wrong_method = served.request("DELETE", "/api/photos", headers=token)
     assert wrong_method.status == 405 and "error" in wrong_method.json()
+    deep = served.request("POST", "/api/save", b"[" * 100_000 + b"]" * 100_000, token)
+    assert deep.status == 400 and "nested too deeply" in deep.json()["error"]  # was a 500
+    twice = served.request("POST", "/api/save", b'{"entries": {}, "entries": {}}', token)
+    assert twice.status == 400 and "'entries' appears twice" in twice.json()["error"]
     assert manifest.read_bytes() == before
+
+
+def test_a_photo_removed_while_the_page_is_open_is_named(served, folder):
+    served.wait_planned()
+    (folder / "wide.png").unlink()
+    for kind in ("image", "depth"):
+        gone = served.get(f"/api/photos/wide.png/{kind}")
+        assert gone.status == 404 and "wide.png: no longer there" in gone.json()["error"], kind
 
 
 TRAVERSALS = [

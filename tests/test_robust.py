@@ -129,3 +129,49 @@ def test_disk_full_during_encoding_leaves_no_partial_clip(tmp_path):
     assert "a.png" in result.stderr and "FAILED" in result.stderr
     assert not visible_clips(out), "a partial clip was left under the final name"
     assert not list(out.glob(".*part*")), "a temporary file was left behind"
+
+
+def test_a_clip_is_made_in_an_output_folder_whose_name_is_not_utf8(tmp_path, quick_preset):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    output = tmp_path / os.fsdecode(b"outB\xff")
+    report = run_folder(folder, output, quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["done"], report.to_json()
+    assert visible_clips(output) == ["a.mp4"]
+    assert [r.status for r in run_folder(folder, output, quick_preset, FAST, False).results
+            ] == ["skipped"]
+
+
+@pytest.mark.parametrize("width_px, height_px", [(5000, 5), (5, 5000), (5000, 1), (2, 5000),
+                                                 (20, 5000)])
+def test_a_photo_too_thin_for_the_clip_is_said_to_be_too_small(tmp_path, quick_preset,
+                                                               width_px, height_px):
+    """A strip a few pixels high broke the planner ("depth does not match the view size")
+    where a slightly wider one was said to be too small."""
+    from kbbatch.pipeline import make_clip
+
+    photo = tmp_path / f"strip{width_px}x{height_px}.png"
+    Image.fromarray(textured_image(height_px, width_px)).save(photo)
+    options = ClipOptions(depth=DepthOptions(backend="popup"), threads=2)
+    result = make_clip(photo, tmp_path / "out" / "strip.mp4", quick_preset, options,
+                       show_progress=False)
+    assert result.status == "failed"
+    assert result.error.startswith(f"{photo}: too small for 640 px wide clips"), result.error
+    assert result.detail is None  # an expected refusal, not an unexpected error
+
+
+def test_a_strip_a_smaller_clip_takes_is_planned_without_a_view_of_no_rows(tmp_path,
+                                                                           quick_preset):
+    """5000 x 12 px is 1024 x 2 at the working size and had a planner view of no rows."""
+    from kbbatch.pipeline import make_clip
+    from kbbatch.presets import with_overrides
+
+    preset = with_overrides(quick_preset, width_px=320, height_px=180)
+    photo = tmp_path / "strip.png"
+    Image.fromarray(textured_image(12, 5000)).save(photo)
+    options = ClipOptions(depth=DepthOptions(backend="popup"), threads=2)
+    result = make_clip(photo, tmp_path / "out" / "strip.mp4", preset, options,
+                       show_progress=False)
+    assert result.detail is None, result.detail
+    assert result.error.startswith(f"{photo}: too small for 320 px wide clips"), result.error

@@ -3,6 +3,7 @@ name, a read-only inbox, a full outbox, a writer pausing longer than --settle, t
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -10,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image
@@ -491,3 +493,46 @@ def test_a_photos_depth_map_goes_to_done_with_it(tmp_path):
     done = sorted(p.name for p in (inbox / "done").iterdir())
     assert done == ["b.disparity.png", "b.jpg", "c.depth.png", "c.jpg", "c.png"], done
     assert "ERROR" not in daemon_log(tmp_path)
+
+
+def test_the_daemon_follows_its_manifest_and_leaves_the_maps_it_names(tmp_path):
+    """The manifest was read once at start: an exclude saved later (from `kbbatch review`)
+    was ignored; a depth map the manifest names, dropped in the inbox, became a clip."""
+    inbox, outbox, preset = folders(tmp_path)
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {
+        "map-user.jpg": {"depth": "inbox/user.map.png"}}}))
+    cv2.imwrite(str(inbox / "user.map.png"), np.tile(np.arange(320, dtype=np.uint8)[None],
+                                                     (180, 1)))
+    daemon = start_daemon(inbox, outbox, preset, "--manifest", str(manifest))
+    try:
+        wait_for(lambda: "user.map.png: the depth map of map-user.jpg in the manifest" in
+                 daemon_log(tmp_path), 120, "the map left alone")
+        time.sleep(0.5)  # a later second on coarse file-time clocks
+        manifest.write_text(json.dumps({"version": 1, "images": {"late.jpg": {"exclude": True}}}))
+        wait_for(lambda: "m.json: changed; read again" in daemon_log(tmp_path), 120, "the reread")
+        Image.fromarray(textured_image(180, 320, seed=2)).save(inbox / "late.jpg")
+        wait_for(lambda: "late.jpg: excluded by the manifest" in daemon_log(tmp_path), 120,
+                 "the exclude saved after the start")
+        wait_for(lambda: clips_in(outbox) == ["user.map.mp4"], 120,
+                 "the map, no longer named by the manifest, taken as a photo")
+        assert "late.mp4" not in clips_in(outbox)
+    finally:
+        assert stop(daemon) == 0
+
+
+def test_watch_refuses_a_file_named_done_an_empty_out_and_a_thousand_workers(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    (inbox / "done").write_text("my notes")
+    refused = subprocess.run([*CLI, "watch", str(inbox), "--out", str(outbox), "--preset",
+                              str(preset)], capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 1 and "done: not a folder; the daemon moves finished photos" \
+        in refused.stderr and "Traceback" not in refused.stderr
+    assert (inbox / "done").read_text() == "my notes"
+    empty = subprocess.run([*CLI, "watch", str(inbox), "--out", "", "--preset", str(preset)],
+                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert empty.returncode == 2 and "an empty path" in empty.stderr
+    many = subprocess.run([*CLI, "watch", str(inbox), "--out", str(outbox), "--jobs", "100000"],
+                          capture_output=True, text=True, timeout=120)
+    assert many.returncode == 2 and "--jobs 100000: at most" in many.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inbox", "outbox", "test-preset.toml"]

@@ -8,18 +8,28 @@ passes, need the optional OpenEXR package (`pip install "kbbatch[exr]"`).
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import logging
 import os
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
 
 from kbbatch.camera import ASPECT_TOLERANCE
 from kbbatch.depth import DepthError, DepthResult
-from kbbatch.images import DEPTH_MAP_NAME
+from kbbatch.images import (
+    DEPTH_MAP_NAME,
+    SOURCE_SHA256_KEY,
+    own_png_text,
+    read_image_bytes,
+)
 from kbbatch.layers import nearest_pixels
+
+log = logging.getLogger(__name__)
 
 DEPTH_FILE_KINDS = ("depth", "disparity")
 DEPTH_FILE_SUFFIXES = (".png", ".npy", ".exr")
@@ -54,9 +64,48 @@ def find_depth_file(photo_path: Path) -> Path | None:
 
     for name in sorted(names, key=preference):
         candidate = photo_path.with_name(name)
-        if candidate.is_file():
+        if candidate.is_file() and not is_another_photos_map(candidate, photo_path):
             return candidate
     return None
+
+
+def is_another_photos_map(map_path: Path, photo_path: Path) -> bool:
+    """Whether a map is one kbbatch wrote (`--save-depth`) from another photo than this one,
+    or from a photo it did not record: an output folder that also holds photos had
+    `IMG_1.disparity.png` of one photo taken for the depth of another `IMG_1.jpg`. A map of
+    the user's (one kbbatch did not write, or one edited since, which loses the mark) is
+    theirs to pair with the photo."""
+    if map_path.suffix.lower() != ".png":
+        return False  # kbbatch writes PNG maps only
+    try:
+        map_stat, photo_stat = map_path.stat(), photo_path.stat()
+    except OSError:
+        return False
+    return _is_another_photos_map(
+        str(map_path), (map_stat.st_ino, map_stat.st_size, map_stat.st_mtime_ns),
+        str(photo_path), (photo_stat.st_ino, photo_stat.st_size, photo_stat.st_mtime_ns))
+
+
+@functools.lru_cache(maxsize=64)
+def _is_another_photos_map(map_name: str, map_version: tuple[int, int, int], photo_name: str,
+                           photo_version: tuple[int, int, int]) -> bool:
+    """is_another_photos_map for one version of each file: the photo is hashed, and the
+    warning given, once while neither changes (a photo's map is looked for several times)."""
+    from kbbatch.fingerprint import file_sha256
+
+    text = own_png_text(Path(map_name))
+    if text is None:
+        return False
+    recorded = text.get(SOURCE_SHA256_KEY)
+    try:
+        if recorded is not None and recorded == file_sha256(Path(photo_name)):
+            return False
+    except OSError:  # the photo cannot be read: reading it says so, and why
+        return False
+    made_from = "another photo" if recorded else "a photo it did not record"
+    log.warning("%s: not used as the depth map of %s: kbbatch wrote it (--save-depth) from %s",
+                map_name, photo_name, made_from)
+    return True
 
 
 @functools.lru_cache(maxsize=8)
@@ -101,7 +150,11 @@ def load_map(path: Path) -> np.ndarray:
         except (OSError, ValueError) as error:
             raise DepthError(f"{path}: not a readable .npy array ({error})") from error
     else:
-        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        try:  # read by Python: cv2.imread takes only UTF-8 names
+            data = read_image_bytes(path)
+        except OSError as error:
+            raise DepthError(f"{path}: not a readable image ({error.strerror or error})"
+                             ) from error
         if data is None:
             raise DepthError(f"{path}: not a readable image")
     data = np.asarray(data)
@@ -130,7 +183,9 @@ def load_exr(path: Path) -> np.ndarray:
         raise DepthError(f'{path}: reading OpenEXR needs the OpenEXR package: '
                          f'pip install "kbbatch[exr]"') from None
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
+        with contextlib.ExitStack() as stack:
+            exr = stack.enter_context(OpenEXR.File(_exr_source(path, stack),
+                                                   separate_channels=True))
             channels = {name: channel.pixels for name, channel in exr.channels().items()}
     except Exception as error:  # the bindings raise plain exceptions for bad files
         raise DepthError(f"{path}: not a readable OpenEXR file ({error})") from error
@@ -144,6 +199,18 @@ def load_exr(path: Path) -> np.ndarray:
         return np.asarray(next(iter(channels.values())))
     raise DepthError(f"{path}: no depth channel among {sorted(channels)} "
                      f"(expected one of {', '.join(EXR_DEPTH_CHANNELS)})")
+
+
+def _exr_source(path: Path, stack: contextlib.ExitStack) -> str | BinaryIO:
+    """What OpenEXR.File reads: the path, or a file Python opened where the name is not UTF-8
+    (the bindings refuse such a name; a stream they read; a UTF-8 name stays a name, as every
+    OpenEXR release the `exr` extra allows reads one)."""
+    name = str(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return stack.enter_context(path.open("rb"))
+    return name
 
 
 def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, width: int

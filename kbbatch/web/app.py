@@ -39,6 +39,7 @@ from kbbatch.manifest import (
     ManifestError,
     load_manifest,
     manifest_from_data,
+    parse_manifest_text,
     plan_to_entry,
     write_manifest,
 )
@@ -413,7 +414,13 @@ class ReviewSession:
 
 
 def _json_body() -> dict[str, Any]:
-    data = request.get_json(silent=True)
+    """The request's JSON object, read by the manifest's rules (no NaN, huge numbers, repeated
+    keys or nesting deep enough to exhaust the stack: that one was a 500)."""
+    try:
+        data = parse_manifest_text(request.get_data(as_text=True))
+    except (ValueError, json.JSONDecodeError) as error:
+        raise RequestError(400, f"the request body must be a JSON object ({error})"
+                           ) from error
     if not isinstance(data, dict):
         raise RequestError(400, "the request body must be a JSON object")
     return data
@@ -452,6 +459,15 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
     @app.errorhandler(HTTPException)
     def http_error(error: HTTPException) -> tuple[Response, int]:
         return jsonify(error=f"{error.name}: {error.description}"), error.code or 500
+
+    @app.errorhandler(OSError)
+    def unreadable(error: OSError) -> tuple[Response, int]:
+        """A photo or map removed or made unreadable while the page is open: say which."""
+        name = error.filename or "a file"
+        if isinstance(error, FileNotFoundError):
+            return jsonify(error=f"{name}: no longer there (removed while the page was "
+                                 "open?); reload the page"), 404
+        return jsonify(error=f"{name}: cannot be read ({error.strerror or error})"), 422
 
     @app.errorhandler(Exception)
     def unexpected(error: Exception) -> tuple[Response, int]:
