@@ -61,9 +61,6 @@ class ManifestEntry:
                 scale_x = scale_y = 1.0
             width = crop["width"] * scale_x
             height = crop["height"] * scale_y if "height" in crop else width / aspect
-            if min(width, height) < 1:
-                raise ManifestError(f"{self.where(field)}: crop {width:g} x {height:g} px is "
-                                    "smaller than one pixel of the photo")
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
                 raise ManifestError(f"{self.where(field)}: aspect {width / height:.3f} differs "
                                     f"from the output's {aspect:.3f}")

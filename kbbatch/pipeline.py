@@ -168,8 +168,10 @@ def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Pre
             "photo, or a preset with a smaller output")
     if points <= MAX_CLOUD_POINTS:
         return
-    # needed scale is inversely proportional to the tightest crop: solve for the bound
-    smallest_px = tightest_px * (points / MAX_CLOUD_POINTS) ** 0.5
+    # needed scale is inversely proportional to the tightest crop: solve for the bound (in
+    # this order: for a crop of 1e-300 px, points overflow to inf, the product does not)
+    smallest_px = tightest_px * scale * (scene.width_px * scene.height_px
+                                         / MAX_CLOUD_POINTS) ** 0.5
     raise CropTooSmallError(
         f"{photo_path or 'photo'}: a crop {tightest_px:.4g} px wide (of {source_width_px} px) "
         f"is too tight for {preset.width_px} px output: it needs a {points / 1e6:,.0f} M-point "

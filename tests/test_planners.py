@@ -188,17 +188,6 @@ def test_json_a_manifest_cannot_hold_is_refused_naming_it(tmp_path, text, reason
         load_manifest(path)
 
 
-def test_a_crop_under_one_pixel_is_refused_naming_the_field(tmp_path):
-    path = tmp_path / "m.json"
-    crop = {"center_x": 160, "center_y": 90, "width": 1e-300}
-    path.write_text(json.dumps({"version": 1, "images": {"a.jpg": {
-        "start": crop, "end": crop | {"width": 100}}}}))
-    entry = load_manifest(path).entry("a.jpg")
-    with pytest.raises(ManifestError, match=r"m.json: image 'a.jpg': field 'start': crop "
-                                            r"1e-300 x 5.6\d*e-301 px is smaller than one pixel"):
-        entry.plan(320, 180, 320, 16 / 9, "linear")
-
-
 def test_a_missing_depth_file_of_an_entry_names_the_manifest_image_and_field(tmp_path,
                                                                           quick_preset):
     folder = tmp_path / "in"
