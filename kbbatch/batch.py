@@ -333,11 +333,36 @@ def existing_manifest(manifest_path: Path) -> Manifest | None:
 
     if not manifest_path.exists() and not manifest_path.is_symlink():
         return None
+    if not manifest_path.is_file():  # a pipe would block the read for good
+        raise OutputFolderError(f"{manifest_path}: not a regular file; not replaced: give -o "
+                                "another file")
     try:
         return load_manifest(manifest_path)
     except ManifestError as error:
         raise OutputFolderError(f"{manifest_path}: exists and is not a manifest kbbatch can "
                                 f"update ({error}); not replaced: give -o another file") from error
+
+
+def _keeps_its_entry(entry: ManifestEntry | None, replan: bool) -> bool:
+    """Whether `plan` leaves a photo's entry as it is: excluded, or crops of its own."""
+    return entry is not None and (entry.excluded or (entry.has_crops and not replan))
+
+
+def _merged_plans(manifest_path: Path, planned_entries: dict[str, dict], replan: bool
+                  ) -> dict[str, dict]:
+    """The manifest as it is on disk now, with the new plans: read again at the end, as an
+    edit saved while the photos were planned (from `kbbatch review`) was written over with
+    the copy read at the start."""
+    current = existing_manifest(manifest_path)
+    entries = {name: entry.data for name, entry in current.entries.items()} if current else {}
+    for name, planned in planned_entries.items():
+        entry = current.entry(name) if current else None
+        if _keeps_its_entry(entry, replan):
+            continue  # crops or an exclude saved meanwhile: the user's
+        own = {key: value for key, value in (entry.data if entry else {}).items()
+               if key not in PLANNED_FIELDS}
+        entries[entry.image if entry else name] = planned | own
+    return entries
 
 
 def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
@@ -357,16 +382,16 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     check_writable(manifest_path.parent)  # before the planning, not after it
     preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
     results: list[PlanResult] = []
-    entries: dict[str, dict] = ({name: entry.data for name, entry in existing.entries.items()}
-                                if existing else {})
+    planned_entries: dict[str, dict] = {}
     previews = []
-    sources = list_images(folder)
+    sources = [source for source in list_images(folder)
+               if not (existing and existing.depth_map_of(source))]  # a map it names: no photo
     names = output_names(sources)
     for source in progress_bar(sources, desc="planning", unit="photo",
                                disable=not show_progress):
         started = time.perf_counter()
         entry = existing.entry(source.name) if existing else None
-        if entry is not None and (entry.excluded or (entry.has_crops and not replan)):
+        if _keeps_its_entry(entry, replan):
             results.append(PlanResult(str(source), "kept", entry=entry.data))
             continue
         try:
@@ -377,9 +402,9 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             plan = get_planner(photo_options.planner).plan(PlanRequest(working, depth,
                                                                        photo_preset))
             planned = plan_to_entry(plan, photo.shape[1], working.shape[1])
+            planned_entries[source.name] = planned
             own = {key: value for key, value in (entry.data if entry else {}).items()
                    if key not in PLANNED_FIELDS}
-            entries[entry.image if entry else source.name] = planned | own
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"
             write_image(preview_dir / preview_name, preview)
@@ -391,7 +416,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         except Exception as error:  # one photo must never stop the batch
             message = f"{source}: {type(error).__name__}: {error}"
             results.append(PlanResult(str(source), "failed", error=message))
-    write_manifest(manifest_path, entries)
+    write_manifest(manifest_path, _merged_plans(manifest_path, planned_entries, replan))
     if previews:  # beside the previews: a sheet beside the photos became a clip of its own
         write_image(preview_dir / CONTACT_SHEET_NAME, contact_sheet(previews))
     return results

@@ -288,8 +288,9 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
                                    f"{error.strerror or error}") from error
     done = [r for r in results if r.status == "done"]
     kept = [r for r in results if r.status == "kept"]
-    click.echo(f"{len(done)} plan(s) written to {manifest_path}; previews in "
-               f"{manifest_path.with_name(manifest_path.stem + '-previews')}")
+    previews = (f"; previews in {manifest_path.with_name(manifest_path.stem + '-previews')}"
+                if done else "")
+    click.echo(f"{len(done)} plan(s) written to {manifest_path}{previews}")
     if kept:
         click.echo(f"{len(kept)} entr{'y' if len(kept) == 1 else 'ies'} with crops or "
                    "excluded kept as they were (--replan plans them again)")
@@ -297,10 +298,10 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
     click.echo("render them with: " + shlex.join([
         "kbbatch", str(folder.absolute()), "--manifest", str(manifest_path.absolute()),
         *render_options]))
-    for result in results:
-        if result.status != "done":
-            click.echo(f"FAILED {result.error}", err=True)
-    sys.exit(1 if len(done) + len(kept) < len(results) else 0)
+    failed = [r for r in results if r.status == "failed"]
+    for result in failed:
+        click.echo(f"FAILED {result.error}", err=True)
+    sys.exit(1 if failed else 0)
 
 
 @main.command()

@@ -161,14 +161,35 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return found
 
 
+NESTING_MAX = 16
+"""Deepest nesting of lists and objects a manifest may have (it needs 4): a document nested
+just under the JSON reader's limit overflowed the stack later, in the schema's messages."""
+
+
+def _nesting(data: Any) -> int:
+    deepest, stack = 0, [(data, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, dict | list):
+            deepest = max(deepest, depth)
+            if depth <= NESTING_MAX:  # deeper is refused: no need to walk it all
+                children = value.values() if isinstance(value, dict) else value
+                stack.extend((child, depth + 1) for child in children)
+    return deepest
+
+
 def parse_manifest_text(text: str) -> Any:
     """A manifest's JSON, refusing what JSON has not (NaN, Infinity), numbers no manifest
     holds, and repeated keys; raises ManifestContentError or json.JSONDecodeError."""
     try:
-        return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float,
+        data = json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float,
                           parse_int=_bounded_int, object_pairs_hook=_unique_keys)
     except RecursionError as error:
         raise ManifestContentError("nested too deeply to be a manifest") from error
+    if _nesting(data) > NESTING_MAX:
+        raise ManifestContentError(f"nested too deeply to be a manifest (more than "
+                                   f"{NESTING_MAX} levels)")
+    return data
 
 
 def load_manifest(path: Path) -> Manifest:

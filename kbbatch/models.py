@@ -226,12 +226,27 @@ def cache_problem(spec: ModelSpec, path: Path) -> str | None:
     if spec.role not in EXPECTED_TENSORS:
         return None
     try:
-        created = session(path)
+        probe = _probe_session(path)
     except Exception as error:  # onnxruntime's own exception types, not exported
         first_line = (str(error).strip().splitlines() or [""])[0]
         return (f"model {spec.name} cannot be loaded, damaged or not an ONNX network "
                 f"({first_line[:200]}); {_remedy(spec)}")
-    return tensors_problem(spec, created)
+    problem = tensors_problem(spec, probe)
+    del probe  # gone before the daemon forks its workers (see _probe_session)
+    return problem
+
+
+def _probe_session(path: Path):
+    """A throwaway one-thread CPU session, to read a model's tensors. Not the cached one: a
+    session with a thread pool alive in the daemon when it forked its workers left them
+    hung at their first photo (seen with a depth network: no clip in 90 s, 0 % CPU)."""
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 3
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
+    return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
 EXPECTED_TENSORS: dict[str, tuple[tuple[tuple[int, ...], ...], tuple[tuple[int, ...], ...]]] = {

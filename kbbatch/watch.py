@@ -603,13 +603,13 @@ class JobRunner:
             return None
         if self.keep_sources or not path.exists():
             return None
-        destination = unique_destination(self.settings.inbox / folder, path.name)
         depth_map = find_depth_file(path)
         if depth_map is not None and any(  # b.jpg and b.png share b.depth.png: it stays
                 other.stem == path.stem and other != path
                 for other in scan_folder(self.settings.inbox).photos):
             depth_map = None
-        try:
+        try:  # done/ made a file after the start: said, and the daemon goes on
+            destination = unique_destination(self.settings.inbox / folder, path.name)
             move_photo(path, destination)
         except OSError as error:
             log.error("%s: cannot be moved to %s/ (%s); it stays in the inbox", path, folder,
@@ -631,10 +631,11 @@ class JobRunner:
 
     def write_failure_report(self, photo: Path, result: ClipResult) -> None:
         folder = photo.parent if photo.parent.name == FAILED_FOLDER else self.failure_reports
-        report = unique_destination(folder, photo.name + ".error.json")
+        report = folder / (photo.name + ".error.json")
         data = {"photo": str(photo), "error": result.error, "detail": result.detail,
                 "result": asdict(result)}
         try:
+            report = unique_destination(folder, photo.name + ".error.json")
             with atomic_output(report, ".json") as temp_path:
                 temp_path.write_text(json.dumps(data, indent=2), encoding="utf-8")
         except OSError as error:

@@ -1,6 +1,7 @@
 """Planners: valid crops for every aspect, auto beats center on disocclusion, manifests."""
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -180,6 +181,8 @@ def test_nan_and_infinity_in_a_manifest_are_refused_by_name(tmp_path, value):
     ('{"version": 1, "images": {"a.jpg": {"duration_s": 1' + "0" * 5000 + "}}}",
      r"10000000000000000000\.\.\. is too large a number"),  # Python's reader: traceback
     ("[" * 100_000 + "]" * 100_000, "nested too deeply"),  # RecursionError
+    ('{"version": 1, "images": {"a.jpg": {"start": ' + "[" * 975 + "]" * 975 + "}}}",
+     "nested too deeply"),  # read, then a RecursionError in the schema's message
 ])
 def test_json_a_manifest_cannot_hold_is_refused_naming_it(tmp_path, text, reason):
     path = tmp_path / "m.json"
@@ -274,6 +277,50 @@ def test_plan_into_an_existing_file_never_loses_what_is_there(tmp_path, quick_pr
     assert [r.status for r in results] == ["kept", "done", "done", "done"]  # exclude stays
     written = json.loads((repository / "m.json").read_text())["images"]
     assert written["b.jpg"]["start"] != hand_crop and written["c.jpg"]["duration_s"] == 2.0
+    os.mkfifo(tmp_path / "pipe.json")  # reading it to merge blocked for good
+    with pytest.raises(OutputFolderError, match=r"pipe.json: not a regular file; not replaced"):
+        plan_folder(folder, tmp_path / "pipe.json", quick_preset, options, show_progress=False)
+
+
+def test_plan_keeps_an_edit_saved_while_it_plans_and_skips_the_maps_it_names(
+        tmp_path, quick_preset, monkeypatch):
+    """plan wrote back the manifest it read at the start: an exclude saved from `kbbatch
+    review` meanwhile was lost. And it planned a depth map the manifest names as a photo,
+    so the render then failed on an entry for a photo that is no photo."""
+    from click.testing import CliRunner
+
+    from kbbatch import batch
+    from kbbatch.cli import main
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for seed, name in enumerate(("a.jpg", "b.jpg", "c.jpg")):
+        Image.fromarray(textured_image(180, 320, seed)).save(folder / name)
+    Image.fromarray(textured_image(180, 320, 7)[..., 0]).save(folder / "a_map.png")
+    manifest_path = tmp_path / "m.json"
+    manifest_path.write_text(json.dumps({"version": 1, "images": {
+        "a.jpg": {"depth": "photos/a_map.png"}}}))
+    real_get_planner = batch.get_planner
+
+    def planner_while_the_user_saves(name):  # the user's save lands during the planning
+        document = json.loads(manifest_path.read_text())
+        document["images"]["c.jpg"] = {"exclude": True}
+        manifest_path.write_text(json.dumps(document))
+        return real_get_planner(name)
+
+    monkeypatch.setattr(batch, "get_planner", planner_while_the_user_saves)
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["plan", "photos", "-o", "m.json", "--planner", "center",
+                                       "--preset", "preview"])
+    assert result.exit_code == 0, result.output
+    written = json.loads(manifest_path.read_text())["images"]
+    assert sorted(written) == ["a.jpg", "b.jpg", "c.jpg"]  # no entry for the map
+    assert written["c.jpg"] == {"exclude": True}
+    assert written["a.jpg"]["depth"] == "photos/a_map.png" and "start" in written["a.jpg"]
+    again = CliRunner().invoke(main, ["plan", "photos", "-o", "m.json", "--planner", "center",
+                                      "--preset", "preview"])
+    assert "3 entries with crops or excluded kept" in again.output
+    assert "FAILED" not in again.output and again.exit_code == 0  # it printed "FAILED None"
 
 
 def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):

@@ -291,10 +291,14 @@ def test_a_photo_that_cannot_be_read_is_reported_not_served(tmp_path, preset):
     photos.mkdir()
     (photos / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
     write_image(photos / "fine.png", textured_image(120, 160))
+    write_image(photos / "strip.png", textured_image(5, 3000))  # plan and render refuse it
     manifest = tmp_path / "m.json"
     with running_server(photos, manifest, preset, OPTIONS) as served:
-        photo = {p["name"]: p for p in served.wait_planned()["photos"]}["broken.jpg"]
+        planned = {p["name"]: p for p in served.wait_planned()["photos"]}
+        photo = planned["broken.jpg"]
         assert photo["status"] == "failed" and "broken.jpg" in photo["error"]
+        assert planned["strip.png"]["status"] == "failed"
+        assert "strip.png: too small for" in planned["strip.png"]["error"]
         image = served.get("/api/photos/broken.jpg/image")
         assert image.status == 422 and "broken.jpg" in image.json()["error"]
         save = served.post("/api/save", {"entries": {"broken.jpg": EDITED}})

@@ -536,3 +536,39 @@ def test_watch_refuses_a_file_named_done_an_empty_out_and_a_thousand_workers(tmp
                           capture_output=True, text=True, timeout=120)
     assert many.returncode == 2 and "--jobs 100000: at most" in many.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["inbox", "outbox", "test-preset.toml"]
+
+
+def test_a_file_named_done_made_after_the_start_is_said_and_the_daemon_goes_on(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: "watching" in daemon_log(tmp_path), 120, "the start")
+        (inbox / "done").write_text("my notes")
+        Image.fromarray(textured_image(180, 320)).save(inbox / "a.jpg")
+        wait_for(lambda: "a.jpg: cannot be moved to done/" in daemon_log(tmp_path), 120,
+                 "the move refused")
+        assert daemon.poll() is None, daemon_log(tmp_path)  # it crashed here
+        assert clips_in(outbox) == ["a.mp4"] and (inbox / "a.jpg").is_file()
+    finally:
+        assert stop(daemon) == 0
+    assert (inbox / "done").read_text() == "my notes"
+    assert "Traceback" not in daemon_log(tmp_path)
+
+
+def test_workers_forked_after_the_start_up_model_check_make_their_clips(tmp_path, monkeypatch):
+    """The check at start loaded each unpinned network (its tensors) into a session that was
+    still alive when the daemon forked its workers: they hung at their first photo."""
+    from .test_models import tiny_depth_model
+
+    inbox, outbox, preset = folders(tmp_path)
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "depth_anything_v2_small.onnx").write_bytes(tiny_depth_model())
+    monkeypatch.setenv("KBBATCH_MODELS", str(tmp_path / "models"))
+    for seed in range(2):
+        Image.fromarray(textured_image(180, 320, seed)).save(inbox / f"p{seed}.jpg")
+    daemon = start_daemon(inbox, outbox, preset, "--depth", "onnx", "--jobs", "2")
+    try:
+        wait_for(lambda: clips_in(outbox) == ["p0.mp4", "p1.mp4"], 120, "both clips")
+    finally:
+        assert stop(daemon) == 0
+    assert "depth from onnx (depth-anything-v2-small)" in daemon_log(tmp_path)

@@ -44,7 +44,15 @@ from kbbatch.manifest import (
     write_manifest,
 )
 from kbbatch.outputs import OutputFolderError, check_writable
-from kbbatch.pipeline import ClipOptions, apply_entry, make_clip, resize_to, working_depth
+from kbbatch.pipeline import (
+    ClipOptions,
+    CropTooSmallError,
+    apply_entry,
+    check_photo_size,
+    make_clip,
+    resize_to,
+    working_depth,
+)
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
 from kbbatch.review import depth_picture
@@ -260,7 +268,7 @@ class ReviewSession:
             except (OSError, ValueError):
                 try:
                     result = self._compute_plan(state.path, preset, options)
-                except DepthError as error:  # a bad depth map: the photo's, not the server's
+                except (DepthError, CropTooSmallError) as error:  # the photo's, not ours
                     raise RequestError(422, str(error)) from error
                 # not kept on a full disk: computed again next time
                 with contextlib.suppress(OSError), atomic_output(path, ".json") as temp_path:
@@ -271,6 +279,7 @@ class ReviewSession:
     @staticmethod
     def _compute_plan(source: Path, preset: Preset, options: ClipOptions) -> dict[str, Any]:
         photo = read_image(source)
+        check_photo_size(photo.shape[1], photo.shape[0], preset, source)  # as plan and render
         working, _, depth = working_depth(photo, source, options)
         plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
         return {"entry": plan_to_entry(plan, photo.shape[1], working.shape[1]),
