@@ -295,9 +295,10 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
         click.echo(f"{len(kept)} entr{'y' if len(kept) == 1 else 'ies'} with crops or "
                    "excluded kept as they were (--replan plans them again)")
     # The manifest holds crops: the preset, duration and depth options are the command's.
-    click.echo("render them with: " + shlex.join([
+    # as bytes: a folder name that is not UTF-8 is printed as the shell must be given it
+    click.echo(os.fsencode("render them with: " + shlex.join([
         "kbbatch", str(folder.absolute()), "--manifest", str(manifest_path.absolute()),
-        *render_options]))
+        *render_options])))
     failed = [r for r in results if r.status == "failed"]
     for result in failed:
         click.echo(f"FAILED {result.error}", err=True)

@@ -25,6 +25,11 @@ FFMPEG_STOP_MESSAGE = "Immediate exit requested"
 """What ffmpeg says when a stop signal arrives before its first frame (it then also reports the
 read it broke off)."""
 
+FFMPEG_CUT_FRAME_MESSAGE = "< expected frame_size"
+"""What ffmpeg says of the frame a stop signal cut in half (it stops reading mid-frame, then
+reports the short packet): stopped, not failed (seen under load, where the signal so often
+lands inside a 170 kB frame)."""
+
 FFMPEG_SIGNALLED_STATUS = 255
 """ffmpeg's exit status after it caught SIGTERM or SIGINT and stopped (its errors exit with 1
 and say why on stderr; a signal leaves stderr empty at -loglevel error)."""
@@ -190,6 +195,14 @@ def _signal_name(number: int) -> str:
         return f"signal {number}"
 
 
+def caught_stop(status: int, stderr: str) -> bool:
+    """Whether ffmpeg exited because it caught a stop signal: its signal status, with nothing
+    on stderr or what a stop leaves there (the stop itself, or the frame it cut short; frames
+    are written whole, so only a stop cuts one)."""
+    return status == FFMPEG_SIGNALLED_STATUS and (
+        not stderr.strip() or FFMPEG_STOP_MESSAGE in stderr or FFMPEG_CUT_FRAME_MESSAGE in stderr)
+
+
 def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> int:
     """Write frames (H, W, 3 uint8 RGB) to path with the preset's encoder; returns the count."""
     # Its own session: a stop signal sent to the whole process group (a shell, a supervisor)
@@ -217,9 +230,7 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
     stderr = process.stderr.read().decode(errors="replace")
     status = process.wait()
     killer = -status if status < 0 else None
-    caught = status == FFMPEG_SIGNALLED_STATUS and (
-        not stderr.strip() or FFMPEG_STOP_MESSAGE in stderr)
-    if killer in STOP_SIGNALS or caught:
+    if killer in STOP_SIGNALS or caught_stop(status, stderr):
         cause = _signal_name(killer) if killer else "a signal"
         raise EncoderStoppedError(f"ffmpeg was stopped by {cause} while writing {path}; the "
                                   "photo is not at fault and is taken again")

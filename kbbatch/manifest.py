@@ -92,6 +92,9 @@ class Manifest:
     entries: dict[str, ManifestEntry]
     normal_entries: dict[str, ManifestEntry] = dataclasses.field(init=False, repr=False,
                                                                  compare=False)
+    version_read: tuple[int, int] | None = dataclasses.field(default=None, compare=False)
+    """(mtime_ns, size) of the file taken before it was read: a reader that follows it (the
+    daemon) sees a change made since, however soon."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "normal_entries",
@@ -195,6 +198,7 @@ def parse_manifest_text(text: str) -> Any:
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
     try:
+        version = file_version(Path(path))
         # utf-8-sig: a byte-order mark (Notepad writes one) is not an error
         data = parse_manifest_text(Path(path).read_text(encoding="utf-8-sig"))
     except UnicodeDecodeError as error:
@@ -207,7 +211,16 @@ def load_manifest(path: Path) -> Manifest:
     except json.JSONDecodeError as error:
         raise ManifestError(f"{path}: malformed JSON at line {error.lineno} column "
                             f"{error.colno}: {error.msg}") from error
-    return manifest_from_data(data, Path(path))
+    return dataclasses.replace(manifest_from_data(data, Path(path)), version_read=version)
+
+
+def file_version(path: Path) -> tuple[int, int] | None:
+    """A file's (mtime_ns, size), or None where it cannot be seen."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_mtime_ns, stat.st_size
 
 
 def manifest_from_data(data: Any, path: Path) -> Manifest:

@@ -47,7 +47,13 @@ from kbbatch.journal import (
     JournalError,
     source_fingerprint,
 )
-from kbbatch.manifest import Manifest, ManifestEntry, ManifestError, load_manifest
+from kbbatch.manifest import (
+    Manifest,
+    ManifestEntry,
+    ManifestError,
+    file_version,
+    load_manifest,
+)
 from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
@@ -308,19 +314,12 @@ class ManifestFollower:
 
     def __init__(self, manifest: Manifest | None) -> None:
         self.current = manifest
-        self.stamp = self._stamp() if manifest else None
-
-    def _stamp(self) -> tuple[int, int] | None:
-        try:
-            stat = self.current.path.stat()
-        except OSError:
-            return None
-        return stat.st_mtime_ns, stat.st_size
+        self.stamp = manifest.version_read if manifest else None
 
     def get(self) -> Manifest | None:
         if self.current is None:
             return None
-        stamp = self._stamp()
+        stamp = file_version(self.current.path)
         if stamp == self.stamp:
             return self.current
         self.stamp = stamp

@@ -1,3 +1,4 @@
+import contextlib
 import os
 import signal
 import subprocess
@@ -11,9 +12,11 @@ import pytest
 from kbbatch.encode import (
     EncodeError,
     EncoderStoppedError,
+    caught_stop,
     check_encoder,
     decode_frames,
     encode_frames,
+    encoder_command,
     ffmpeg_exe,
     palindrome_order,
     probe,
@@ -109,6 +112,27 @@ def test_an_encoder_stopped_by_a_signal_is_an_interruption_not_a_failure(tmp_pat
     expected = EncoderStoppedError if sent != signal.SIGKILL else EncodeError
     with pytest.raises(expected, match="stopped by" if sent != signal.SIGKILL else "SIGKILL"):
         encode_frames(tmp_path / "x.mp4", frames(), preset)
+
+
+def test_a_stop_that_cuts_a_frame_in_half_is_still_a_stop(tmp_path):
+    """Under load the signal often lands inside a frame: ffmpeg then reports the short packet
+    as well, and the photo was filed as failed (seen in a daemon test under load)."""
+    preset = load_preset("preview")
+    process = subprocess.Popen(encoder_command(tmp_path / "x.mp4", preset),
+                               stdin=subprocess.PIPE, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    frame = np.zeros((preset.height_px, preset.width_px, 3), np.uint8).tobytes()
+    process.stdin.write(frame * 3 + frame[: len(frame) // 7])
+    process.stdin.flush()
+    time.sleep(0.5)
+    process.send_signal(signal.SIGTERM)
+    with contextlib.suppress(BrokenPipeError):
+        process.stdin.close()
+    stderr = process.stderr.read().decode(errors="replace")
+    status = process.wait()
+    assert "< expected frame_size" in stderr, stderr  # what made it look like a failure
+    assert caught_stop(status, stderr)
+    assert not caught_stop(1, stderr)  # ffmpeg's own errors exit with 1
 
 
 def test_an_encoder_that_fails_on_its_own_is_still_a_failure(tmp_path):

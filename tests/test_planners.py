@@ -403,3 +403,20 @@ def test_plan_says_a_photo_is_too_small_as_the_render_would(tmp_path, quick_pres
     [result] = plan_folder(folder, tmp_path / "m.json", quick_preset, ClipOptions(),
                            show_progress=False)
     assert result.status == "failed" and "strip.png: too small for" in result.error
+
+
+def test_plan_in_a_folder_whose_name_is_not_utf8_prints_a_command_that_works(tmp_path):
+    """plan crashed (OpenCV's writer, a segfault) on such a manifest path; then its render
+    command printed the name with a replacement character, not to be pasted."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / os.fsdecode(b"caf\xe9")
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    run = subprocess.run([sys.executable, "-m", "kbbatch", "plan", os.fsencode(folder), "-o",
+                          os.fsencode(folder / "m.json"), "--preset", "preview", "--depth",
+                          "ramp", "--quiet"], capture_output=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert (folder / "m.json").is_file() and (folder / "m-previews" / "a.jpg").is_file()
+    assert b"--manifest '" + os.fsencode(folder / "m.json") + b"'" in run.stdout
