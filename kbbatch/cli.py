@@ -163,6 +163,13 @@ def _clip_options(options: dict, **more) -> ClipOptions:
     return ClipOptions(planner=options.pop("planner"), depth=depth, **more)
 
 
+def _finite_number(context: click.Context, param: click.Parameter, value: float) -> float:
+    """click's float ranges let NaN (and inf past a lower bound) by: refused by name here."""
+    if not math.isfinite(value):
+        raise click.BadParameter(f"must be a finite number, got {value}", param=param)
+    return value
+
+
 executor_options = _shared(
     click.option("--executor", "executor_name", type=click.Choice(["local", "ray"]),
                  default="local", show_default=True,
@@ -170,9 +177,11 @@ executor_options = _shared(
     click.option("--ray-address", help="Ray cluster to join (default: $RAY_ADDRESS, else "
                  "Ray starts on this machine)."),
     click.option("--ray-cpus-per-clip", type=click.FloatRange(min=1), default=1.0,
-                 show_default=True, help="CPUs a clip reserves on a Ray worker (threads)."),
+                 show_default=True, callback=_finite_number,
+                 help="CPUs a clip reserves on a Ray worker (threads)."),
     click.option("--ray-gpus-per-clip", type=click.FloatRange(min=0), default=0.0,
-                 show_default=True, help="GPUs (or a fraction) a clip reserves on a worker."),
+                 show_default=True, callback=_finite_number,
+                 help="GPUs (or a fraction) a clip reserves on a worker."),
     click.option("--ray-shared-fs", is_flag=True,
                  help="Every Ray node sees the photos and the output folder at the same paths: "
                  "send paths, not bytes; workers write the clips in place."),

@@ -260,10 +260,19 @@ def _temp_prefix(stem: str) -> str:
     return f".{stem}." if size <= TEMP_STEM_MAX_BYTES else ".kbbatch."
 
 
+TEMP_NAME = re.compile(r"^\..*\.[a-z0-9_]{8}\.part\.[A-Za-z0-9]+$")
+"""The names atomic_output gives its temporary files (mkstemp's 8 random characters between
+_temp_prefix and `.part.<suffix>`): the only hidden files a run may remove as its own (a
+looser `.*.part*` took a user's `.vacation.part1.rar`)."""
+
+
 @contextmanager
-def atomic_output(final_path: Path, suffix: str):
-    """A temporary path beside final_path, renamed onto it only if the block succeeds."""
-    final_path.parent.mkdir(parents=True, exist_ok=True)
+def atomic_output(final_path: Path, suffix: str, make_folder: bool = True):
+    """A temporary path beside final_path, renamed onto it only if the block succeeds; the
+    folder is made unless make_folder is False (a clip's: an output folder removed mid-run
+    was made again, under the run's feet)."""
+    if make_folder:
+        final_path.parent.mkdir(parents=True, exist_ok=True)
     handle, temp_name = tempfile.mkstemp(
         prefix=_temp_prefix(final_path.stem), suffix=f".part{suffix}", dir=final_path.parent
     )

@@ -52,10 +52,13 @@ def check_writable(folder: Path) -> None:
 def remove_partial_clips(folder: Path) -> list[Path]:
     """Temporary clips (`.NAME.XXXX.part.mp4`) left by a killed run; call with the folder
     locked, so that no live run's file is taken."""
+    from kbbatch.images import TEMP_NAME
+
     removed = []
-    for partial in folder.glob(".*.part*"):
-        partial.unlink(missing_ok=True)
-        removed.append(partial)
+    for partial in folder.glob(".*.part.*"):
+        if TEMP_NAME.match(partial.name) and not partial.is_dir():
+            partial.unlink(missing_ok=True)
+            removed.append(partial)
     return removed
 
 

@@ -604,7 +604,7 @@ def make_clip(
                           unit="frame", leave=False, disable=not show_progress) as bar:
             frames = render_clip_frames(prepared, preset, options.threads, bar.update,
                                         result.device)
-            with atomic_output(output, CLIP_SUFFIX) as temp_path:
+            with atomic_output(output, CLIP_SUFFIX, make_folder=False) as temp_path:
                 result.frames = encode_frames(temp_path, frames, preset)
         timings["frames+encode"] = time.perf_counter() - clock
         result.output = str(output)

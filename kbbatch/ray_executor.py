@@ -23,6 +23,7 @@ import os
 import pickle
 import signal
 import tempfile
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future
@@ -227,8 +228,8 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
     try:
         for name, data in outcome.files.items():
             path = job.output.parent / name
-            with atomic_output(path, CLIP_SUFFIX if name == job.output.name else path.suffix
-                               ) as temp_path:
+            with atomic_output(path, CLIP_SUFFIX if name == job.output.name else path.suffix,
+                               make_folder=False) as temp_path:
                 temp_path.write_bytes(data)
         result.output = str(job.output)
     except OSError as error:
@@ -302,7 +303,14 @@ class RayExecutor:
         """Ray, started or joined, and the remote clip function with this executor's resources."""
         ray = import_ray()
         if not ray.is_initialized():
+            # Ray's driver installs its own SIGTERM handler (a C++ dump and exit at once):
+            # the runner's handlers, which finish the clip in progress, are put back.
+            in_main = threading.current_thread() is threading.main_thread()
+            handlers = ({sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+                        if in_main else {})
             start_ray(ray, self.address)
+            for sig, handler in handlers.items():
+                signal.signal(sig, handler)
         remote_clip = ray.remote(
             num_cpus=self.cpus_per_clip, num_gpus=self.gpus_per_clip,
             max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,
@@ -385,12 +393,8 @@ class RayClipPool:
         self.pending: set = set()
 
     def start(self) -> RayClipPool:
-        """Start or join Ray; Ray's driver installs its own SIGTERM handler (it exits at once),
-        so the daemon's handlers are put back."""
-        handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+        """Start or join Ray (connect keeps the daemon's signal handlers)."""
         self.ray, self.remote_clip = self.executor.connect()
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
         return self
 
     def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:

@@ -222,13 +222,17 @@ def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
         process.send_signal(signal.SIGKILL)
         process.wait(timeout=60)
     assert list(out.glob(".*.part*")), "the kill left a partial clip (the case under test)"
+    users = [out / ".vacation.part1.rar", out / ".notes.partial.txt", out / ".a.b.part.zip"]
+    for path in users:  # hidden files of the user's: the clean-up took them too
+        path.write_text("precious")
     # nothing runs there now: the killed run's photo is not shown as running
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout and "INTERRUPTED" in status.stdout, status.stdout
     rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                            capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
-    assert not list(out.glob(".*part*")), "partial clips of the killed run are still there"
+    assert sorted(out.glob(".*part*")) == sorted(users), "partial clips are still there"
+    assert all(path.read_text() == "precious" for path in users)
     assert visible_clips(out) == ["p0.mp4", "p1.mp4"]
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout and "done 2" in status.stdout
@@ -499,3 +503,20 @@ def test_a_journal_of_the_earlier_version_keeps_its_clip_names(tmp_path, quick_p
     report = run_folder(tmp_path / "in", out, quick_preset, FAST, False)
     assert [r.status for r in report.results] == ["done"]
     assert visible_clips(out) == ["a.mp4"] and (out / "a.mp4").stat().st_size > 1000
+
+
+def test_an_output_folder_removed_mid_run_stops_the_run_and_is_not_made_again(tmp_path):
+    """It was made again by the next clip, its journal lost: the re-run then made every clip
+    a second time under content names, and a second run could take the new folder's lock."""
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    process = start_batch(folder, out, "--duration", "4", "--fps", "25")
+    try:
+        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
+        shutil.rmtree(out)
+        _, stderr = process.communicate(timeout=300)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 1, stderr
+    assert f"{out}: removed or renamed during the run; stopped" in stderr
+    assert not out.exists()

@@ -384,6 +384,22 @@ def test_ctrl_c_cancels_the_outstanding_clips_and_exits_non_zero(cluster, photo_
     assert cluster.second_node_clip_task() is None
 
 
+def test_sigterm_finishes_the_clips_in_progress_and_says_so(cluster, photo_folder, tmp_path):
+    """Ray's driver put in its own SIGTERM handler: the batch died at once (exit 1 or 134,
+    Ray's C++ stack dump, no summary, stopped_by null), its clip in progress unfinished."""
+    output = tmp_path / "out"
+    driver = start_driver(cluster, photo_folder, output)
+    while_running(driver, cluster.second_node_clip_task)
+    driver.send_signal(signal.SIGTERM)
+    stdout, stderr = driver.communicate(timeout=120)
+    assert driver.returncode == 130, stderr
+    assert "SIGTERM received" not in stderr  # Ray's own handler's dump
+    report = json.loads((output / REPORT_NAME).read_text())
+    assert report["stopped_by"] == "SIGTERM"
+    assert not [p for p in output.iterdir() if ".part" in p.name]
+    assert any(state == "done" for state, _ in journal_rows(output).values())
+
+
 def test_the_daemon_on_ray_with_a_shared_fs_makes_every_arrival_and_stops_on_sigterm(
         cluster, photo_folder, tmp_path):
     """With --ray-shared-fs (the inbox and outbox are seen by both nodes): the daemon's pool
