@@ -532,6 +532,21 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str
     write_image(clip_path.with_name(picture_name), depth_picture(disparity), own=True)
 
 
+def remove_stale_depth_images(clip_path: Path) -> list[Path]:
+    """The depth images kbbatch wrote beside an earlier make of this clip, removed when it is
+    made again without --save-depth: left, they showed the old photo beside the new clip.
+    Only kbbatch's own (marked) files; a user's file of that name is never touched."""
+    from kbbatch.images import depth_image_names, is_own_png
+
+    removed = []
+    for name in depth_image_names(clip_path.name):
+        path = clip_path.with_name(name)
+        if is_own_png(path):
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
+
+
 def plan_summary(plan: Plan, to_photo: float) -> dict:
     """The plan for the run report, its crops in the photo's own pixels (as a manifest gives
     them; to_photo: photo pixels per working pixel)."""
@@ -609,6 +624,8 @@ def make_clip(
         timings["frames+encode"] = time.perf_counter() - clock
         result.output = str(output)
         result.status = "done"
+        if not options.save_depth:
+            remove_stale_depth_images(output)
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
             DeviceError) as error:
         result.error = str(error)

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from kbbatch.depth.file import find_depth_file
-from kbbatch.images import atomic_output
+from kbbatch.images import atomic_output, depth_image_names
 from kbbatch.journal import source_fingerprint
 from kbbatch.manifest import ManifestEntry, ManifestError
 from kbbatch.pipeline import (
@@ -42,6 +42,7 @@ from kbbatch.pipeline import (
     ClipResult,
     apply_entry,
     make_clip,
+    remove_stale_depth_images,
     remove_stale_scratch,
 )
 from kbbatch.presets import Preset
@@ -232,6 +233,8 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
                                make_folder=False) as temp_path:
                 temp_path.write_bytes(data)
         result.output = str(job.output)
+        if not set(depth_image_names(job.output.name)) & set(outcome.files):
+            remove_stale_depth_images(job.output)  # made again without --save-depth
     except OSError as error:
         result.status, result.output = "failed", None
         result.error = f"{job.output}: the clip could not be written ({error.strerror or error})"

@@ -72,6 +72,14 @@ def test_save_depth_writes_a_16_bit_disparity_and_a_preview(tmp_path, quick_pres
     assert max(disparity.shape) == 1024 and len(np.unique(disparity)) > 10
     preview = cv2.imread(str(tmp_path / "out" / f"{source.stem}.depth-preview.png"))
     assert preview.shape[:2] == disparity.shape
+    # Another photo under that name, made without --save-depth: the maps of the old photo
+    # stayed beside the new clip, without a word.
+    [_, other] = shared_photos(2)
+    shutil.copy(other, folder / source.name)
+    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
+                        show_progress=False)
+    assert report.results[0].status == "done"
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.png")) == []
 
 
 def test_progress_into_a_log_is_a_few_lines_not_a_redraw_per_frame(tmp_path):

@@ -409,6 +409,11 @@ class ReviewSession:
         with self._key_lock(key):
             if not path.is_file():
                 clip_entry = ManifestEntry(name, clip_data, self.manifest_path)
+                try:  # clips never make their folder (make_clip): the previews' is ours
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                except OSError as error:
+                    raise RequestError(500, f"{path.parent}: previews cannot be written "
+                                            f"({error.strerror or error})") from error
                 result = make_clip(state.path, path, preset,
                                    replace(options, threads=PREVIEW_THREADS),
                                    show_progress=False, entry=clip_entry)
