@@ -226,34 +226,45 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
     outbox.mkdir()
     preset = preset_file(tmp_path, 40.0, fps=25.0)
     [photo] = shared_photos(1)
-    shutil.copy(photo, inbox / "a.jpg")
-    daemon = start_daemon(inbox, outbox, preset)
-    try:
-        # Held still while the signals are sent, so that on a loaded machine it cannot finish
-        # the clip between being found and being signalled (it then takes SIGTERM on SIGCONT).
-        encoders = held_encoders(outbox, "a")
-        daemon.send_signal(signal.SIGTERM)
-        for pid in encoders:
-            os.kill(pid, signal.SIGTERM)
-            os.kill(pid, signal.SIGCONT)
-        assert daemon.wait(timeout=60) == 0
-    finally:
-        if daemon.poll() is None:
-            daemon.kill()
+    for attempt in range(3):
+        stem = f"a{attempt}"
+        shutil.copy(photo, inbox / f"{stem}.jpg")
+        daemon = start_daemon(inbox, outbox, preset)
+        try:
+            # Held still while the signals are sent, so that on a loaded machine it cannot
+            # finish the clip between being found and being signalled (it then takes SIGTERM
+            # on SIGCONT).
+            encoders = held_encoders(outbox, stem)
+            daemon.send_signal(signal.SIGTERM)
+            for pid in encoders:
+                os.kill(pid, signal.SIGTERM)
+                os.kill(pid, signal.SIGCONT)
+            assert daemon.wait(timeout=60) == 0
+        finally:
+            if daemon.poll() is None:
+                daemon.kill()
+        if not (outbox / f"{stem}.mp4").is_file():
+            break
+        # ffmpeg now and then finishes its clip in spite of the SIGTERM (seen in CI): the
+        # photo is then rightly done, and the case under test was not reached: again
+        assert (inbox / "done" / f"{stem}.jpg").is_file()
+    else:
+        raise AssertionError("ffmpeg finished its clip in spite of SIGTERM three times")
     log = (tmp_path / "daemon.log").read_text(errors="replace")
-    assert (inbox / "a.jpg").is_file() and not (inbox / "failed").exists(), log
+    assert (inbox / f"{stem}.jpg").is_file() and not (inbox / "failed").exists(), log
     journal = Journal(outbox)
-    job = journal.get(inbox / "a.jpg")
+    job = journal.get(inbox / f"{stem}.jpg")
     journal.close()
     assert job.state == "queued" and "stopped by" in job.error
-    assert clips_in(outbox) == []
+    assert f"{stem}.mp4" not in clips_in(outbox)
     daemon = start_daemon(inbox, outbox, preset)
     try:
-        wait_for(lambda: finished_jobs(outbox) == 1, 180, "a.jpg's clip after the restart")
+        wait_for(lambda: finished_jobs(outbox) == attempt + 1, 180,
+                 f"{stem}.jpg's clip after the restart")
     finally:
         assert stop(daemon) == 0
-    assert clips_in(outbox) == ["a.mp4"]
-    assert (inbox / "done" / "a.jpg").is_file()
+    assert f"{stem}.mp4" in clips_in(outbox)
+    assert (inbox / "done" / f"{stem}.jpg").is_file()
 
 
 def test_a_photo_the_manifest_excludes_is_left_in_the_inbox_unrendered(tmp_path):
