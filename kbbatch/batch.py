@@ -78,7 +78,7 @@ class RunReport:
     preset: str
     results: list[ClipResult]
     notes: list[str] = field(default_factory=list)  # what was passed over, and why
-    stopped_by: str | None = None  # the signal that ended the run early
+    stopped_by: str | None = None  # what ended the run early: a signal, a full disk
     device: str = "cpu"  # the --device setting; each clip says where it was rendered
     onnx_providers: dict[str, str] = field(default_factory=dict)
     """Each ONNX model this run used, and the onnxruntime provider its session ran on."""
@@ -86,6 +86,11 @@ class RunReport:
     @property
     def failed(self) -> list[ClipResult]:
         return [r for r in self.results if r.status == "failed"]
+
+    @property
+    def no_space(self) -> list[ClipResult]:
+        """Clips their full disk could not take: queued for the next run."""
+        return [r for r in self.results if r.status == "no_space"]
 
     @property
     def interrupted(self) -> list[ClipResult]:
@@ -246,6 +251,8 @@ def run_folder(
                 for job, result in rendered:
                     results.append(finish_job(journal, job, result))
                     bar.update()
+                    if results[-1].status == "no_space":  # the photos after it would fail too
+                        stop["by"] = DISK_FULL
                     if fail_fast and results[-1].status == "failed":
                         break
     except KeyboardInterrupt:
@@ -277,6 +284,7 @@ def run_folder(
 
 
 FOLDER_GONE = "the output folder removed or renamed"
+DISK_FULL = "a full output disk"
 
 
 def _folder_identity(folder: Path) -> tuple[int, int] | None:
@@ -325,8 +333,9 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         result.note = clip_name_note(job.source, job.preferred, job.output.name)
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None
-        # an interrupted clip is queued again, as one whose run was stopped
-        state = "queued" if result.status == "interrupted" else result.status
+        # an interrupted clip is queued again, as one whose run was stopped, and so is one its
+        # full disk could not take
+        state = "queued" if result.status in ("interrupted", "no_space") else result.status
         journal.finish(job.source, state, result.seconds, result.error, clip)
     except (JournalError, OSError) as error:
         return ClipResult(str(job.source), None, "failed", 0.0, error=f"{job.source}: {error}")

@@ -15,6 +15,7 @@ from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
 from kbbatch.batch import (
     CORES_PER_JOB,
+    DISK_FULL,
     MEMORY_PER_JOB_GIB,
     EmptyFolderError,
     RunReport,
@@ -23,6 +24,7 @@ from kbbatch.batch import (
     run_folder,
 )
 from kbbatch.depth import DepthOptions
+from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
@@ -139,7 +141,8 @@ def _clip_options(options: dict, **more) -> ClipOptions:
     checked here, once, before any photo."""
     try:
         model_registry.check_cache()
-    except model_registry.ModelError as error:
+        depth_cache.cache_max_bytes()
+    except (model_registry.ModelError, depth_cache.CacheSettingError) as error:
         raise click.ClickException(str(error)) from error
     depth = DepthOptions(backend=options.pop("depth_backend"), model=options.pop("depth_model"),
                          adjust=not options.pop("no_adjust"),
@@ -225,6 +228,10 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo("\ninterrupted: no partial clip is left; run again to finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
     _print_summary(report)
+    if report.stopped_by == DISK_FULL:
+        click.echo(f"stopped: {report.no_space[0].error}; the photos after it were not "
+                   "started: free some space and run again to finish", err=True)
+        sys.exit(1)  # incomplete, as when photos fail
     if report.stopped_by:
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)
@@ -253,6 +260,7 @@ def _executor(options: dict) -> RayExecutor | None:
         return None
     try:
         import_ray()
+        executor.connect()  # refused here, before the output folder is touched
     except RayUnavailableError as error:
         raise click.ClickException(str(error)) from error
     return executor

@@ -5,6 +5,7 @@ The ffmpeg binary is the one on PATH, else the one shipped in the imageio-ffmpeg
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import re
@@ -29,6 +30,11 @@ FFMPEG_CUT_FRAME_MESSAGE = "< expected frame_size"
 """What ffmpeg says of the frame a stop signal cut in half (it stops reading mid-frame, then
 reports the short packet): stopped, not failed (seen under load, where the signal so often
 lands inside a 170 kB frame)."""
+
+FFMPEG_DISK_FULL_MESSAGES = {"No space left on device": errno.ENOSPC,
+                             "Disk quota exceeded": errno.EDQUOT}
+"""What ffmpeg says when the clip's disk has no room left: raised as an OSError of that errno
+(kbbatch.images.is_disk_full), so that the photo is not failed for it."""
 
 FFMPEG_SIGNALLED_STATUS = 255
 """ffmpeg's exit status after it caught SIGTERM or SIGINT and stopped (its errors exit with 1
@@ -167,12 +173,33 @@ ffmpeg-python hashes every name as UTF-8, so a folder whose name is not (bytes t
 accepts, read back as surrogates) failed every clip; the OS takes such a name as it is."""
 
 
+COLOUR_STANDARD = "bt709"
+"""Frames are sRGB, whose primaries are BT.709's: a clip is converted to YUV with BT.709's
+matrix (at any size) and tagged so. Untagged, with swscale's default BT.601 matrix, players that
+take untagged HD video for BT.709 shifted every clip's colours (a green of 180 read as 155)."""
+
+
+def with_colour_tags(stream, pix_fmt: str):
+    """The frames converted with BT.709's matrix (for a YUV format) and tagged as BT.709 (the
+    frame tags: ffmpeg's own -color_* options lost the primaries and transfer on the way)."""
+    tags: dict[str, str] = {"color_primaries": COLOUR_STANDARD, "color_trc": COLOUR_STANDARD}
+    if is_yuv(pix_fmt):
+        stream = stream.filter("scale", out_color_matrix=COLOUR_STANDARD, out_range="tv")
+        tags.update(colorspace=COLOUR_STANDARD, range="tv")
+    return stream.filter("setparams", **tags)
+
+
+def is_yuv(pix_fmt: str) -> bool:
+    return pix_fmt.startswith(("yuv", "yuvj", "nv", "p010", "p016"))
+
+
 def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[str]:
     """The ffmpeg command that reads raw RGB frames on stdin and writes the clip."""
     stream = ffmpeg.input(
         "pipe:", format="rawvideo", pix_fmt="rgb24",
         s=f"{preset.width_px}x{preset.height_px}", framerate=preset.fps,
     )
+    stream = with_colour_tags(stream, preset.pix_fmt)
     options: dict[str, object] = {
         "vcodec": preset.codec,
         "pix_fmt": preset.pix_fmt,
@@ -238,6 +265,9 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
         raise EncodeError(f"ffmpeg was killed by {_signal_name(killer)} writing {path} "
                           f"{stderr.strip()[-800:]}".rstrip())
     if status != 0:
+        for message, number in FFMPEG_DISK_FULL_MESSAGES.items():
+            if message in stderr:
+                raise OSError(number, f"ffmpeg: {message}", str(path))
         raise EncodeError(f"ffmpeg failed writing {path}: {stderr.strip()[-800:]}")
     return count
 

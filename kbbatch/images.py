@@ -7,8 +7,11 @@ arrays into files, and names the file in every error.
 from __future__ import annotations
 
 import errno
+import functools
+import io
 import os
 import re
+import shutil
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -16,7 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image, ImageOps, UnidentifiedImageError
+from PIL import Image, ImageCms, ImageOps, UnidentifiedImageError
 
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp"})
 
@@ -219,7 +222,7 @@ def read_image(path: Path) -> np.ndarray:
                                      f"the last {TRUNCATED_JPEG_ROWS} rows or more are blank "
                                      "mid grey; if the picture really ends in a #808080 band, "
                                      "save it as PNG)")
-            image = ImageOps.exif_transpose(image)
+            image = ImageOps.exif_transpose(in_srgb(image))
             return _to_rgb8(image)
     except ImageReadError:
         raise
@@ -231,12 +234,40 @@ def read_image(path: Path) -> np.ndarray:
         raise ImageReadError(path, f"is corrupt or truncated ({error})") from error
 
 
+PROFILED_MODES = ("RGB", "RGBA", "CMYK")
+"""Modes whose embedded colour profile is applied: the frames are sRGB, and a Display P3 or
+Adobe RGB photo read as if it were sRGB came out dull (a green of 180 as 176 with red 85)."""
+
+
+def in_srgb(image: Image.Image) -> Image.Image:
+    """The image converted to sRGB by its embedded ICC profile; as it is without one, with an
+    sRGB one, or with a profile LittleCMS cannot use."""
+    icc = image.info.get("icc_profile")
+    if not icc or image.mode not in PROFILED_MODES:
+        return image
+    try:
+        profile = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+        if ImageCms.getProfileDescription(profile).strip().lower().startswith("srgb"):
+            return image
+        return ImageCms.profileToProfile(image, profile, _srgb_profile(),
+                                         outputMode="RGBA" if image.mode == "RGBA" else "RGB")
+    except (ImageCms.PyCMSError, OSError, ValueError, TypeError):
+        return image
+
+
+@functools.cache
+def _srgb_profile() -> ImageCms.ImageCmsProfile:
+    return ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB"))
+
+
 def _to_rgb8(image: Image.Image) -> np.ndarray:
     """Convert any Pillow mode (16-bit, float, grey, palette, CMYK, alpha) to 8-bit RGB."""
     mode = image.mode
     if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
-        values = np.asarray(image, dtype=np.float64)
+        values = np.nan_to_num(np.asarray(image, dtype=np.float64), posinf=0.0, neginf=0.0)
         peak = 65535.0 if mode.startswith("I;16") or values.max() > 255 else 255.0
+        if mode == "F" and values.max() <= 1.0:  # floats of 0 to 1 (a black clip before)
+            peak = 1.0
         grey = np.clip(values / peak * 255.0 + 0.5, 0, 255).astype(np.uint8)
         return np.ascontiguousarray(np.repeat(grey[..., None], 3, axis=2))
     if mode in ("RGBA", "LA", "PA") or (mode == "P" and "transparency" in image.info):
@@ -284,6 +315,29 @@ def atomic_output(final_path: Path, suffix: str, make_folder: bool = True):
         os.replace(temp_path, final_path)
     finally:
         temp_path.unlink(missing_ok=True)
+
+
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+"""A write that fails with these failed for want of room (or of the user's quota), not for
+anything in the photo: the runners keep the photo queued instead of failing it."""
+
+
+def is_disk_full(error: BaseException) -> bool:
+    return isinstance(error, OSError) and error.errno in DISK_FULL_ERRNOS
+
+
+def free_bytes(folder: Path) -> int | None:
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
+
+
+def disk_full_message(folder: Path, source: Path) -> str:
+    free = free_bytes(folder)
+    room = "" if free is None else f" ({free // 1024} KB free)"
+    return (f"{folder}: its disk is full{room}; the clip of {source.name} could not be written "
+            "(the photo is not at fault and stays queued)")
 
 
 OWN_PNG_SOFTWARE = "kbbatch"

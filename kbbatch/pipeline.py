@@ -43,7 +43,13 @@ from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_dispar
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import EncoderStoppedError, encode_frames, palindrome_order
-from kbbatch.images import ImageReadError, atomic_output, read_image
+from kbbatch.images import (
+    ImageReadError,
+    atomic_output,
+    disk_full_message,
+    is_disk_full,
+    read_image,
+)
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.manifest import ManifestEntry, ManifestError
 from kbbatch.planners import PlanRequest, get_planner
@@ -105,7 +111,9 @@ class ClipOptions:
 class ClipResult:
     source: str
     output: str | None
-    status: str  # "done", "failed", or "interrupted" (its encoder was stopped: taken again)
+    # "done", "failed", "interrupted" (its encoder was stopped: taken again) or "no_space" (its
+    # disk is full: kept queued, not failed)
+    status: str
     seconds: float
     error: str | None = None
     depth_backend: str | None = None
@@ -633,8 +641,13 @@ def make_clip(
         result.status = "interrupted"
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
-        result.error = f"{source}: {type(error).__name__}: {error}"
-        result.detail = traceback.format_exc()
+        if is_disk_full(error):
+            result.status = "no_space"
+            full = Path(error.filename).parent if error.filename else output.parent
+            result.error = disk_full_message(full, source)
+        else:
+            result.error = f"{source}: {type(error).__name__}: {error}"
+            result.detail = traceback.format_exc()
     result.seconds = time.perf_counter() - started
     result.stage_seconds = {k: round(v, 3) for k, v in timings.items()}
     return result

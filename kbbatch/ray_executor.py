@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import os
 import pickle
 import signal
+import socket
 import tempfile
 import threading
 import time
@@ -31,7 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from kbbatch.depth.file import find_depth_file
-from kbbatch.images import atomic_output, depth_image_names
+from kbbatch.images import atomic_output, depth_image_names, disk_full_message, is_disk_full
 from kbbatch.journal import source_fingerprint
 from kbbatch.manifest import ManifestEntry, ManifestError
 from kbbatch.pipeline import (
@@ -46,6 +48,8 @@ from kbbatch.pipeline import (
     remove_stale_scratch,
 )
 from kbbatch.presets import Preset
+
+log = logging.getLogger(__name__)
 
 RAY_INSTALL_HINT = 'pip install "kbbatch[ray]"'
 
@@ -62,6 +66,15 @@ SHARED_FS_HINT = ("--ray-shared-fs needs the photos, their depth files and the o
 CLIP_VISIBLE_WAIT_S = 2.0
 """How long the driver waits to see a clip a worker renamed on a shared file system (a network
 file system's attribute cache may lag the worker's rename by a moment)."""
+
+
+RAY_CONNECT_TIMEOUT_S = 10.0
+"""How long a cluster's head may take to accept a connection: ray.init waited without end (and
+logged its retries) for a head that is not there."""
+
+RAY_NODE_WAIT_S = 30.0
+"""How long a cluster may take to show a node with the resources a clip asks for (a node still
+joining) before the run is refused: Ray itself waits for one without end, and says nothing."""
 
 
 class RayUnavailableError(RuntimeError):
@@ -236,8 +249,14 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
         if not set(depth_image_names(job.output.name)) & set(outcome.files):
             remove_stale_depth_images(job.output)  # made again without --save-depth
     except OSError as error:
-        result.status, result.output = "failed", None
-        result.error = f"{job.output}: the clip could not be written ({error.strerror or error})"
+        result.output = None
+        if is_disk_full(error):
+            result.status, result.error = "no_space", disk_full_message(job.output.parent,
+                                                                        job.source)
+        else:
+            result.status = "failed"
+            result.error = (f"{job.output}: the clip could not be written "
+                            f"({error.strerror or error})")
     return result
 
 
@@ -272,9 +291,55 @@ def pickled_bytes(value: object) -> int:
     return len(pickle.dumps(value, protocol=5))
 
 
+def check_reachable(ray, address: str) -> None:
+    """A head address (`host:port` or `ray://host:port`) that takes no connection: refused with
+    the reason. Ray reads 127.0.0.1 as this machine's own address, and so is it tried here."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        return  # "auto", or a form Ray's own message explains
+    hosts = [host.strip("[]")]
+    if host in ("127.0.0.1", "localhost"):
+        hosts.append(ray.util.get_node_ip_address())
+    for candidate in hosts:
+        try:
+            socket.create_connection((candidate, int(port)), RAY_CONNECT_TIMEOUT_S).close()
+            return
+        except OSError as error:
+            reason = error.strerror or str(error) or type(error).__name__
+    raise RayUnavailableError(f"could not reach the Ray cluster at {address}: {reason} (is its "
+                              "head running, and is that its address?)")
+
+
+def check_resources(ray, cpus_per_clip: float, gpus_per_clip: float, wait_s: float) -> None:
+    """A clip asking for more than any node offers: refused, after wait_s for such a node to
+    join, naming what the nodes have."""
+    deadline = time.monotonic() + wait_s
+    said = False
+    while True:
+        offers = [node["Resources"] for node in ray.nodes() if node.get("Alive")]
+        if any(offer.get("CPU", 0) >= cpus_per_clip and offer.get("GPU", 0) >= gpus_per_clip
+               for offer in offers):
+            return
+        if time.monotonic() >= deadline:
+            break
+        if not said:
+            log.warning("no Ray node offers %g CPU(s) and %g GPU(s) for a clip yet; waiting "
+                        "up to %.0f s for one to join", cpus_per_clip, gpus_per_clip, wait_s)
+            said = True
+        time.sleep(1.0)
+    nodes = "; ".join(f"{offer.get('CPU', 0):g} CPU(s), {offer.get('GPU', 0):g} GPU(s)"
+                      for offer in offers) or "none alive"
+    raise RayUnavailableError(
+        f"no node of the Ray cluster offers {cpus_per_clip:g} CPU(s) and {gpus_per_clip:g} "
+        f"GPU(s) for a clip (its nodes: {nodes}); lower --ray-cpus-per-clip or "
+        "--ray-gpus-per-clip")
+
+
 def start_ray(ray, address: str | None) -> None:
     """Join the cluster at address (or $RAY_ADDRESS), else start Ray on this machine alone."""
     address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        check_reachable(ray, address)
     try:
         if address:
             ray.init(address=address, log_to_driver=False)
@@ -314,6 +379,9 @@ class RayExecutor:
             start_ray(ray, self.address)
             for sig, handler in handlers.items():
                 signal.signal(sig, handler)
+        joined = self.address or os.environ.get("RAY_ADDRESS")
+        check_resources(ray, self.cpus_per_clip, self.gpus_per_clip,
+                        RAY_NODE_WAIT_S if joined else 0.0)
         remote_clip = ray.remote(
             num_cpus=self.cpus_per_clip, num_gpus=self.gpus_per_clip,
             max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,

@@ -36,6 +36,7 @@ from kbbatch.images import (
     atomic_output,
     broken_link_reason,
     entry_kind,
+    free_bytes,
     is_image_file,
     scan_folder,
     unreadable_reason,
@@ -123,6 +124,10 @@ ENCODER_STOPS_TO_FAIL = 3
 """A photo whose encoder a signal stops this often in one run of the daemon fails: a request to
 stop ends the daemon too, so the same photo stopped again and again is hitting a limit (ffmpeg
 takes SIGXCPU, a CPU-time limit's signal, as it takes SIGTERM)."""
+
+SPACE_TO_RESUME_BYTES = 1 << 20
+"""After a clip found the output's disk full, photos are taken again once this much more room is
+free than then (a retry with less would fail the same way)."""
 
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
@@ -241,6 +246,7 @@ class InboxTracker:
         self.events: queue.Queue[tuple[Path, bool]] = queue.Queue()  # filled by the observer
         self.arrivals: dict[Path, Arrival] = {}
         self.mentioned: set[Path] = set()  # subfolders and broken links already logged
+        self.held: set[Path] = set()  # photos the manifest excludes or names as depth maps
         self.removals: queue.Queue[Path] = queue.Queue()  # filled by the observer
         self.removed: set[Path] = set()  # taken photos deleted since (their clips in flight)
 
@@ -350,6 +356,7 @@ class JobRunner:
         self.suspects: dict[Path, Suspect] = {}
         self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
         self.encoder_stops: dict[Path, int] = {}  # photos whose encoder a signal stopped
+        self.space_wanted: int | None = None  # free bytes awaited after a full output disk
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
         self.manifest = ManifestFollower(settings.manifest)
 
@@ -385,10 +392,13 @@ class JobRunner:
         s = self.settings
         before, manifest = self.manifest.current, self.manifest.get()
         if manifest is not before:  # photos it excluded, or maps it named, may be wanted now
-            for path in sorted(inbox.mentioned):
-                inbox.mentioned.discard(path)
+            for path in sorted(inbox.held):  # still held: not said again
                 if path.exists():
                     self.requeue(path, False)
+                else:
+                    inbox.held.discard(path)
+        if not self.has_space():
+            return
         busy = {job.path for job in self.in_flight.values()} | set(self.suspects)
         for path in sorted(inbox.arrivals, key=lambda p: (p not in self.worker_deaths, p)):
             if len(self.in_flight) >= s.jobs or stopping.is_set():
@@ -404,12 +414,13 @@ class JobRunner:
             map_of = manifest.depth_map_of(path) if manifest else None
             if (entry is not None and entry.excluded) or map_of:  # as the batch: not rendered
                 inbox.forget(path)
-                if path not in inbox.mentioned:
-                    inbox.mentioned.add(path)
+                if path not in inbox.held:
+                    inbox.held.add(path)
                     log.info("%s: %s; left in the inbox", path.name,
                              f"the depth map of {map_of} in the manifest" if map_of
                              else "excluded by the manifest")
                 continue
+            inbox.held.discard(path)
             try:
                 fingerprint = source_fingerprint(path)
                 content = file_sha256(path)
@@ -475,12 +486,18 @@ class JobRunner:
                 self.requeue(job.path, False)
                 continue
             self.worker_deaths.pop(job.path, None)
-            if result.status in ("failed", "interrupted") and not job.path.exists():
+            if result.status in ("failed", "interrupted", "no_space") and not job.path.exists():
                 # deleted from the inbox while it was processed: the user's choice, no failure
                 self.journal.forget(job.path)
                 del self.in_flight[future]
                 log.info("%s was removed from the inbox while it was processed; skipped",
                          job.path.name)
+                continue
+            if result.status == "no_space":  # not the photo's fault: it waits for room
+                self.journal.finish(job.path, "queued", result.seconds, result.error)
+                del self.in_flight[future]
+                self.wait_for_space(result.error)
+                self.requeue(job.path, job.renamed)
                 continue
             if result.status == "interrupted":  # ffmpeg stopped from outside: not the photo's
                 stops = self.encoder_stops.get(job.path, 0) + 1
@@ -525,6 +542,26 @@ class JobRunner:
             else:
                 self.file_failure(job.path, result)
         removed.intersection_update(job.path for job in self.in_flight.values())
+
+    def wait_for_space(self, error: str | None) -> None:
+        """No photo is taken until the output's disk has SPACE_TO_RESUME_BYTES more room than
+        when a clip found it full: each would fail the same way."""
+        free = free_bytes(self.settings.outbox) or 0
+        if self.space_wanted is None:
+            log.warning("%s; no photo is taken until %d MB more are free", error,
+                        SPACE_TO_RESUME_BYTES >> 20)
+        self.space_wanted = free + SPACE_TO_RESUME_BYTES
+
+    def has_space(self) -> bool:
+        if self.space_wanted is None:
+            return True
+        free = free_bytes(self.settings.outbox)
+        if free is None or free < self.space_wanted:
+            return False
+        self.space_wanted = None
+        log.info("%s has room again (%d MB free): taking photos again", self.settings.outbox,
+                 free >> 20)
+        return True
 
     def recover_from_worker_death(self) -> None:
         """A worker process died (out of memory, killed): the pool is broken and every photo in

@@ -6,6 +6,7 @@ import multiprocessing
 import time
 
 import numpy as np
+import pytest
 
 from kbbatch.depth import DepthResult
 from kbbatch.depth import cache as depth_cache
@@ -55,18 +56,36 @@ def test_an_entry_larger_than_the_bound_is_still_kept(monkeypatch):
     assert present() == {2}
 
 
-def test_the_bound_defaults_to_2_gb_and_a_bad_value_says_so(monkeypatch, caplog):
+def test_the_bound_defaults_to_2_gb_and_a_bad_value_is_refused(monkeypatch, caplog):
     monkeypatch.delenv(depth_cache.CACHE_MAX_ENV, raising=False)
     assert depth_cache.cache_max_bytes() == 2048 * 2**20
     monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "500")
     assert depth_cache.cache_max_bytes() == 500 * 2**20
-    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "lots")
-    with caplog.at_level(logging.WARNING):
-        assert depth_cache.cache_max_bytes() == 2048 * 2**20
-    assert "KBBATCH_CACHE_MAX_MB='lots' is not a size in MB" in caplog.text
-    for value in ("inf", "nan", "-5"):  # inf failed every photo with an OverflowError
+    for value in ("lots", "inf", "nan", "-5"):  # inf failed every photo with an OverflowError
         monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, value)
-        assert depth_cache.cache_max_bytes() == 2048 * 2**20
+        with pytest.raises(depth_cache.CacheSettingError, match=f"={value!r} is not a size"):
+            depth_cache.cache_max_bytes()
+    with caplog.at_level(logging.WARNING):  # a library caller's store: said, kept to the default
+        depth_cache.store(key(1), result(1))
+    assert present() == {1}
+    assert "'-5' is not a size in MB" in caplog.text
+
+
+def test_every_command_refuses_a_bad_bound_at_start(tmp_path, monkeypatch):
+    """Before, it was only logged (and only by a run that stored depth)."""
+    from click.testing import CliRunner
+
+    from kbbatch.cli import main
+
+    (tmp_path / "photos").mkdir()
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "abc")
+    for command in (["render", str(tmp_path / "photos")],
+                    ["plan", str(tmp_path / "photos"), "-o", str(tmp_path / "m.json")],
+                    ["watch", str(tmp_path / "photos"), "--out", str(tmp_path / "out")]):
+        run = CliRunner().invoke(main, command)
+        assert run.exit_code != 0 and "KBBATCH_CACHE_MAX_MB='abc' is not a size" in run.output, (
+            command, run.output)
+    assert not (tmp_path / "out").exists() and not (tmp_path / "m.json").exists()
 
 
 def test_a_damaged_entry_is_a_miss_not_an_error():

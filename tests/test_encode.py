@@ -227,3 +227,31 @@ def test_a_clip_is_written_into_a_folder_whose_name_is_not_utf8(tmp_path):
     info = probe(path)
     assert (info.width_px, info.height_px) == (preset.width_px, preset.height_px)
     assert len(list(decode_frames(path, info.width_px, info.height_px))) == preset.frames_total
+
+
+PATCH_COLOURS = [(220, 30, 30), (30, 180, 40), (30, 40, 220), (230, 180, 140), (30, 200, 220)]
+
+
+@pytest.mark.parametrize("preset_name", ["preview", "slideshow"])
+def test_clips_are_converted_and_tagged_as_bt709_so_players_show_the_photos_colours(
+        tmp_path, preset_name):
+    """Converted with swscale's default BT.601 matrix and untagged, a player that reads HD
+    video as BT.709 (as most do) showed a green of 180 as 155."""
+    preset = with_overrides(load_preset(preset_name), duration_s=0.2, fps=10.0)
+    frame = np.full((preset.height_px, preset.width_px, 3), 128, np.uint8)
+    band = preset.width_px // len(PATCH_COLOURS)
+    for index, colour in enumerate(PATCH_COLOURS):
+        frame[:, index * band:(index + 1) * band] = colour
+    path = tmp_path / "chart.mp4"
+    encode_frames(path, [frame] * preset.frames_total, preset)
+    listing = subprocess.run([ffmpeg_exe(), "-hide_banner", "-i", str(path)],
+                             capture_output=True, text=True).stderr
+    assert "yuv420p(tv, bt709, progressive)" in listing, listing  # matrix/primaries/transfer
+    decoded = subprocess.run(
+        [ffmpeg_exe(), "-v", "error", "-i", str(path), "-frames:v", "1", "-vf",
+         "scale=in_color_matrix=bt709:in_range=tv:out_range=pc", "-f", "rawvideo",
+         "-pix_fmt", "rgb24", "pipe:"], capture_output=True, check=True).stdout
+    shown = np.frombuffer(decoded, np.uint8).reshape(preset.height_px, preset.width_px, 3)
+    for index, colour in enumerate(PATCH_COLOURS):
+        centre = shown[preset.height_px // 2, index * band + band // 2].astype(int)
+        assert np.abs(centre - colour).max() <= 4, (colour, centre)

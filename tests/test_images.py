@@ -109,3 +109,77 @@ def test_images_are_written_and_read_under_a_folder_name_that_is_not_utf8(tmp_pa
     assert sorted(p.name for p in folder.iterdir()) == ["grey16.png", "own.png", "plain.jpg",
                                                          "plain.png"]  # no temporary left
 
+
+
+def matrix_profile(description: str, primaries_d50: list[tuple[float, float, float]],
+                   gamma: float) -> bytes:
+    """A minimal ICC v2 RGB display profile: white point, three primaries (XYZ, D50) and one
+    gamma curve per channel, as Adobe RGB (1998) and Display P3 are made."""
+    import struct
+
+    def fixed(value: float) -> bytes:
+        return struct.pack(">i", round(value * 65536))
+
+    def xyz_tag(x: float, y: float, z: float) -> bytes:
+        return b"XYZ \0\0\0\0" + fixed(x) + fixed(y) + fixed(z)
+
+    curve = b"curv\0\0\0\0" + struct.pack(">IH", 1, round(gamma * 256)) + b"\0\0"
+    text = description.encode("ascii") + b"\0"
+    desc = b"desc\0\0\0\0" + struct.pack(">I", len(text)) + text + b"\0" * 79
+    desc += b"\0" * (-len(desc) % 4)
+    d50 = (0.9642, 1.0, 0.8249)
+    tags = [(b"desc", desc), (b"wtpt", xyz_tag(*d50)),
+            *((name, xyz_tag(*xyz)) for name, xyz in zip((b"rXYZ", b"gXYZ", b"bXYZ"),
+                                                          primaries_d50, strict=True)),
+            (b"rTRC", curve), (b"gTRC", curve), (b"bTRC", curve)]
+    offset, table, data = 128 + 4 + 12 * len(tags), b"", b""
+    for name, body in tags:
+        table += name + struct.pack(">II", offset + len(data), len(body))
+        data += body
+    body = struct.pack(">I", len(tags)) + table + data
+    header = (struct.pack(">I", 128 + len(body)) + b"none" + bytes([2, 0x20, 0, 0]) + b"mntr"
+              + b"RGB XYZ " + b"\0" * 12 + b"acsp" + b"\0" * 28  # to the rendering intent
+              + fixed(d50[0]) + fixed(d50[1]) + fixed(d50[2]) + b"\0" * 48)
+    assert len(header) == 128
+    return header + body
+
+
+ADOBE_RGB_D50 = [(0.60974, 0.31111, 0.01947), (0.20528, 0.62567, 0.06087),
+                 (0.14919, 0.06322, 0.74457)]
+
+
+def test_a_wide_gamut_photo_is_read_in_srgb_by_its_embedded_profile(tmp_path):
+    """Read as if it were sRGB, an Adobe RGB photo came out dull."""
+    from PIL import ImageCms
+
+    icc = matrix_profile("Adobe RGB (1998) test", ADOBE_RGB_D50, 563 / 256)
+    colours = [(220, 30, 30), (30, 180, 40), (30, 40, 220), (230, 180, 140)]
+    chart = np.zeros((64, 64 * len(colours), 3), np.uint8)
+    for index, colour in enumerate(colours):
+        chart[:, index * 64:(index + 1) * 64] = colour
+    adobe = ImageCms.ImageCmsProfile(__import__("io").BytesIO(icc))
+    wide = ImageCms.profileToProfile(Image.fromarray(chart), ImageCms.createProfile("sRGB"),
+                                     adobe, outputMode="RGB")
+    stored = np.asarray(wide)
+    assert np.abs(stored.astype(int) - chart).max() > 25  # the file's numbers are not sRGB's
+    for name, options in (("wide.png", {}), ("wide.jpg", {"quality": 98, "subsampling": 0}),
+                          ("wide.tif", {})):
+        wide.save(tmp_path / name, icc_profile=icc, **options)
+        read = read_image(tmp_path / name).astype(int)
+        centres = read[32, 32::64]
+        assert np.abs(centres - np.array(colours)).max() <= 8, (name, centres)  # JPEG: 6
+    Image.fromarray(chart).save(tmp_path / "plain.png")  # no profile: as it is
+    assert np.array_equal(read_image(tmp_path / "plain.png"), chart)
+    wide.save(tmp_path / "broken.png", icc_profile=b"not a profile")  # a damaged one: as it is
+    assert np.array_equal(read_image(tmp_path / "broken.png"), stored)
+
+
+def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
+    """0-1 floats (a 32-bit TIFF from a raw converter) were divided by 255: a black clip."""
+    ramp = np.tile(np.linspace(0.0, 1.0, 256, dtype=np.float32), (16, 1))
+    Image.fromarray(ramp, mode="F").save(tmp_path / "unit.tif")
+    read = read_image(tmp_path / "unit.tif")
+    assert read.shape == (16, 256, 3)
+    assert abs(int(read[0, -1, 0]) - 255) <= 1 and abs(int(read[0, 128, 0]) - 128) <= 1
+    Image.fromarray(ramp * 255.0, mode="F").save(tmp_path / "bytes.tif")  # 0-255 as before
+    assert np.abs(read_image(tmp_path / "bytes.tif").astype(int) - read.astype(int)).max() <= 1

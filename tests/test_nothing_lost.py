@@ -44,10 +44,10 @@ def photo(path: Path, seed: int, height: int = 180, width: int = 320) -> Path:
 
 @pytest.fixture
 def tiny_mount(tmp_path):
-    """A 3 MB tmpfs (root only; skipped with the reason where mounting is not allowed)."""
+    """An 8 MB tmpfs (root only; skipped with the reason where mounting is not allowed)."""
     mount = tmp_path / "small-disk"
     mount.mkdir()
-    result = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)],
+    result = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mount)],
                             capture_output=True, text=True)
     if result.returncode != 0:
         pytest.skip(f"cannot mount a small tmpfs here: {result.stderr.strip()}")
@@ -170,7 +170,7 @@ def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):
 
 # --- 2: full disk ---------------------------------------------------------------------------
 @pytest.mark.slow
-def test_a_full_disk_fails_photos_cleanly_and_a_rerun_finishes(tmp_path, tiny_mount):
+def test_a_full_disk_stops_the_batch_cleanly_and_a_rerun_finishes(tmp_path, tiny_mount):
     folder = tmp_path / "in"
     for index in range(3):
         photo(folder / f"p{index}.jpg", seed=index)
@@ -182,9 +182,15 @@ def test_a_full_disk_fails_photos_cleanly_and_a_rerun_finishes(tmp_path, tiny_mo
         assert "Traceback" not in run.stderr, f"{leave_kb} KB free:\n{run.stderr}"
         assert run.returncode in (0, 1) and (leave_kb > 0 or run.returncode == 1), (
             f"{leave_kb} KB free: {run.stdout}{run.stderr}")
-        if run.returncode == 1:  # what failed says why
+        if run.returncode == 1:  # what stopped it says why; no photo is failed for it
             assert "full" in run.stderr or "No space" in run.stderr, run.stderr
         filler.unlink()
+        if out.is_dir():
+            journal = Journal(out)
+            try:
+                assert not journal.jobs("failed"), f"{leave_kb} KB free: {run.stderr}"
+            finally:
+                journal.close()
         rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                                capture_output=True, text=True, timeout=300)
         assert rerun.returncode == 0, rerun.stderr
@@ -196,6 +202,43 @@ def test_a_full_disk_fails_photos_cleanly_and_a_rerun_finishes(tmp_path, tiny_mo
         finally:
             journal.close()
         shutil.rmtree(out)
+
+
+@pytest.mark.slow
+def test_a_clip_its_disk_cannot_take_stops_the_batch_and_fails_no_photo(tmp_path, tiny_mount):
+    """Room for the journal, not for a lossless clip: before, every photo failed in turn."""
+    folder = tmp_path / "in"
+    for index in range(3):
+        photo(folder / f"p{index}.jpg", seed=index, height=360, width=640)
+    preset = tmp_path / "lossless.toml"
+    preset.write_text((Path(batch.__file__).parents[1] / "presets" / "preview.toml")
+                      .read_text().replace("crf = 28", "crf = 0")
+                      .replace("width_px = 640", "width_px = 320")
+                      .replace("height_px = 360", "height_px = 180"))
+    options = ["--quiet", "--depth", "ramp", "--planner", "center", "--preset", str(preset)]
+    probe = subprocess.run([*CLI, str(folder), "-o", str(tmp_path / "probe"), *options],
+                           capture_output=True, text=True, timeout=300)
+    assert probe.returncode == 0, probe.stderr
+    size_bytes = min(p.stat().st_size for p in (tmp_path / "probe").glob("*.mp4"))
+    out = tiny_mount / "out"
+    command = [*CLI, str(folder), "-o", str(out), *options]
+    filler = fill(tiny_mount, size_bytes // 3)
+    run = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "Traceback" not in run.stderr
+    assert "its disk is full" in run.stderr and "p0.jpg" in run.stderr, run.stderr
+    assert "run again" in run.stderr and "0 failed" in run.stdout, run.stdout + run.stderr
+    assert not list(out.glob(".*part*")) and visible_clips(out) == []
+    filler.unlink()
+    journal = Journal(out)
+    try:
+        assert [job.name for job in journal.jobs("queued")] == ["p0.jpg"]  # the rest not started
+        assert not journal.jobs("failed")
+    finally:
+        journal.close()
+    rerun = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert visible_clips(out) == ["p0.mp4", "p1.mp4", "p2.mp4"]
 
 
 # --- 4: kills -------------------------------------------------------------------------------

@@ -494,3 +494,25 @@ def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_se
     clip = tmp_path / "clip.mp4"
     clip.write_bytes(outcome.files["a.mp4"])
     assert probe(clip).width_px == 256
+
+
+def test_an_address_with_no_ray_head_is_refused_at_once(photo_folder, tmp_path):
+    """ray.init waited without end, logging its retries, for a head that is not there."""
+    output = tmp_path / "out"
+    command = kbbatch_command(photo_folder, output, "--ray-address", f"127.0.0.1:{free_port()}")
+    run = subprocess.run(command, capture_output=True, text=True, timeout=90)
+    assert run.returncode == 1, run.stderr
+    assert "could not reach the Ray cluster at 127.0.0.1:" in run.stderr, run.stderr
+    assert not output.exists()
+
+
+def test_resources_no_node_offers_are_refused_naming_what_the_nodes_have(
+        cluster, photo_folder, tmp_path):
+    """Ray waited without end and without a word for a node with a GPU (or 2 CPUs) per clip."""
+    output = tmp_path / "out"
+    run = run_kbbatch(cluster, photo_folder, output, "--ray-gpus-per-clip", "1")
+    assert run.returncode == 1, run.stderr
+    assert "no node of the Ray cluster offers 1 CPU(s) and 1 GPU(s) for a clip" in run.stderr
+    assert "1 CPU(s), 0 GPU(s); 1 CPU(s), 0 GPU(s)" in run.stderr, run.stderr
+    assert "waiting up to 30 s" in run.stderr
+    assert not output.exists()

@@ -107,32 +107,41 @@ def test_a_read_only_inbox_keeps_its_photos_and_the_daemon_runs_on(tmp_path):
     assert "read-only" in log and "Traceback" not in log
 
 
-def test_a_full_outbox_fails_the_photo_and_the_daemon_goes_on(tmp_path, tiny_mount):  # noqa: F811
+def test_a_full_outbox_keeps_the_photo_queued_until_there_is_room(tmp_path, tiny_mount):  # noqa: F811
+    """Before, a clip its full disk could not take failed its photo (moved to failed/)."""
     inbox = tmp_path / "inbox"
     inbox.mkdir()
     outbox = tiny_mount / "outbox"
     outbox.mkdir()
-    preset = preset_file(tmp_path, 0.4)
+    preset = preset_file(tmp_path, 2.0)
+    preset.write_text(preset.read_text().replace("crf = 30", "crf = 0"))  # ~1 MB clips
     daemon = start_daemon(inbox, outbox, preset, log_path=tmp_path / "daemon.log")
     try:
         drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
         wait_for(lambda: finished_jobs(outbox) == 1, 240, "a.jpg")
-        filler = fill(tiny_mount, 0)
+        filler = fill(tiny_mount, (outbox / "a.mp4").stat().st_size // 3)
         drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
-        wait_for(lambda: (inbox / "failed" / "b.jpg.error.json").is_file()
-                 or "pausing" in daemon_log(tmp_path), 240, "b.jpg failed or a pause")
+        wait_for(lambda: (inbox / "failed").exists() or "disk is full" in daemon_log(tmp_path),
+                 240, "b.jpg failed or waiting for room")
+        time.sleep(3.0)  # the daemon's loop runs on meanwhile
         assert daemon.poll() is None, "the daemon died"
+        assert not (inbox / "failed").exists(), "b.jpg was failed for its disk"
+        assert (inbox / "b.jpg").is_file() and not (outbox / "b.mp4").exists()
+        assert not list(outbox.glob(".*part*"))
         filler.unlink()
         drop(inbox, "c.jpg", photo_bytes(tmp_path, 3))
-        wait_for(lambda: (outbox / "c.mp4").is_file(), 240, "c.jpg once space is back")
+        wait_for(lambda: clips_in(outbox) == ["a.mp4", "b.mp4", "c.mp4"], 240,
+                 "b.jpg and c.jpg once there is room")
     finally:
         assert stop(daemon) == 0
     log = daemon_log(tmp_path)
     assert "Traceback" not in log, log
+    assert "taking photos again" in log, log
+    assert sorted(p.name for p in (inbox / "done").iterdir()) == ["a.jpg", "b.jpg", "c.jpg"]
     journal = Journal(outbox)
     try:
-        assert not journal.jobs("running")
-        assert journal.counts()["done"] >= 2
+        assert not journal.jobs("running") and not journal.jobs("failed")
+        assert journal.counts()["done"] == 3
     finally:
         journal.close()
     assert not list(outbox.glob(".*part*"))
@@ -504,6 +513,8 @@ def test_the_daemon_follows_its_manifest_and_leaves_the_maps_it_names(tmp_path):
         "map-user.jpg": {"depth": "inbox/user.map.png"}}}))
     cv2.imwrite(str(inbox / "user.map.png"), np.tile(np.arange(320, dtype=np.uint8)[None],
                                                      (180, 1)))
+    (inbox / "trip").mkdir()  # said once in the log, and (before) again at each manifest change
+    (inbox / "phone.heic").write_bytes(b"\0\0\0\x18ftypheic")
     daemon = start_daemon(inbox, outbox, preset, "--manifest", str(manifest))
     try:
         wait_for(lambda: "user.map.png: the depth map of map-user.jpg in the manifest" in
@@ -517,8 +528,19 @@ def test_the_daemon_follows_its_manifest_and_leaves_the_maps_it_names(tmp_path):
         wait_for(lambda: clips_in(outbox) == ["user.map.mp4"], 120,
                  "the map, no longer named by the manifest, taken as a photo")
         assert "late.mp4" not in clips_in(outbox)
+        time.sleep(0.5)
+        manifest.write_text(json.dumps({"version": 1, "images": {
+            "late.jpg": {"exclude": True, "duration_s": 3}}}))
+        wait_for(lambda: daemon_log(tmp_path).count("m.json: changed; read again") == 2, 120,
+                 "the second reread")
+        time.sleep(2.0)  # loops of the daemon after it
+        assert "late.mp4" not in clips_in(outbox)
     finally:
         assert stop(daemon) == 0
+    log = daemon_log(tmp_path)
+    for said_once in ("trip: subfolders are not watched", "phone.heic:",
+                      "late.jpg: excluded by the manifest"):
+        assert log.count(said_once) == 1, (said_once, log)
 
 
 def test_watch_refuses_a_file_named_done_an_empty_out_and_a_thousand_workers(tmp_path):

@@ -65,7 +65,12 @@ def store(key: str, result: DepthResult) -> None:
     except OSError as error:  # a cache that cannot be written only costs time: said once
         _say_unwritable(str(cache_dir()), error.strerror or str(error))
         return
-    evict(cache_max_bytes(), keep=path)
+    try:
+        max_bytes = cache_max_bytes()
+    except CacheSettingError as error:  # the commands refuse it at start; a library caller
+        _say_bad_setting(str(error))
+        max_bytes = CACHE_MAX_MB_DEFAULT * 2**20
+    evict(max_bytes, keep=path)
 
 
 @functools.cache
@@ -74,19 +79,30 @@ def _say_unwritable(folder: str, reason: str) -> None:
                 "(set %s to another folder)", folder, reason, CACHE_ENV)
 
 
+class CacheSettingError(ValueError):
+    """$KBBATCH_CACHE_MAX_MB is not a size: refused when a command starts (it was only logged,
+    and the cache grew to the default bound the user meant to lower)."""
+
+
 def cache_max_bytes() -> int:
     """The bound on the folder's size, from $KBBATCH_CACHE_MAX_MB or the default."""
     text = os.environ.get(CACHE_MAX_ENV)
-    if text:
-        try:
-            megabytes = float(text)
-            if 0 <= megabytes < float("inf"):  # inf once failed every photo (OverflowError)
-                return int(megabytes * 2**20)
-        except ValueError:
-            pass
-        log.warning("%s=%r is not a size in MB; using %d", CACHE_MAX_ENV, text,
-                    CACHE_MAX_MB_DEFAULT)
-    return CACHE_MAX_MB_DEFAULT * 2**20
+    if not text:
+        return CACHE_MAX_MB_DEFAULT * 2**20
+    try:
+        megabytes = float(text)
+    except ValueError:
+        megabytes = float("nan")
+    if not 0 <= megabytes < float("inf"):  # inf once failed every photo (OverflowError)
+        raise CacheSettingError(
+            f"{CACHE_MAX_ENV}={text!r} is not a size in MB: give a number such as "
+            f"{CACHE_MAX_MB_DEFAULT} (the default), or unset it")
+    return int(megabytes * 2**20)
+
+
+@functools.cache
+def _say_bad_setting(message: str) -> None:
+    log.warning("%s; the depth cache is kept to %d MB", message, CACHE_MAX_MB_DEFAULT)
 
 
 def evict(max_bytes: int, keep: Path | None = None) -> list[Path]:
