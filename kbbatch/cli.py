@@ -41,6 +41,20 @@ from kbbatch.presets import (
 )
 from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
 
+JOBS_PER_CORE_MAX = 4
+"""More local worker processes (or render threads) than this per core only thrash: --jobs 100000
+forked until the machine stalled, and left an orphan hung after SIGTERM; --threads 1000 kept two
+frames per thread in memory (35 MB each at 1080p, 140 MB at 4K)."""
+
+
+def _threads_cap(context: click.Context, param: click.Parameter, value: int) -> int:
+    most = JOBS_PER_CORE_MAX * (os.cpu_count() or 1)
+    if value > most:
+        raise click.BadParameter(f"{value}: at most {most} here ({JOBS_PER_CORE_MAX} per core)",
+                                 param=param)
+    return value
+
+
 EXIT_NOTHING_TO_DO = 3
 """Exit status of a batch over a folder without photos (0: all made, 1: some failed)."""
 
@@ -201,7 +215,7 @@ executor_options = _shared(
 @manifest_option
 @save_depth_option
 @click.option("--threads", type=click.IntRange(min=1), default=ClipOptions().threads,
-              show_default=True, help="Frames rendered in parallel.")
+              show_default=True, callback=_threads_cap, help="Frames rendered in parallel.")
 @click.option("--force", is_flag=True, help="Redo clips that are already up to date.")
 @click.option("--fail-fast", is_flag=True, help="Stop at the first photo that fails.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
@@ -480,11 +494,6 @@ def _finite_seconds(context: click.Context, param: click.Parameter, value: float
         raise click.BadParameter(f"must be a finite number of seconds, got {value}",
                                  param=param)
     return value
-
-
-JOBS_PER_CORE_MAX = 4
-"""More local worker processes than this per core only thrash: --jobs 100000 forked until the
-machine stalled, and left an orphan hung after SIGTERM."""
 
 
 @main.command()

@@ -333,11 +333,12 @@ def free_bytes(folder: Path) -> int | None:
         return None
 
 
-def disk_full_message(folder: Path, source: Path) -> str:
+def disk_full_message(folder: Path, source: Path, reason: str | None = None) -> str:
     free = free_bytes(folder)
     room = "" if free is None else f" ({free // 1024} KB free)"
+    why = f"{reason}; " if reason else ""
     return (f"{folder}: its disk is full{room}; the clip of {source.name} could not be written "
-            "(the photo is not at fault and stays queued)")
+            f"({why}the photo is not at fault and stays queued)")
 
 
 OWN_PNG_SOFTWARE = "kbbatch"

@@ -44,6 +44,7 @@ from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import EncoderStoppedError, encode_frames, palindrome_order
 from kbbatch.images import (
+    DISK_FULL_ERRNOS,
     ImageReadError,
     atomic_output,
     disk_full_message,
@@ -124,6 +125,7 @@ class ClipResult:
     note: str | None = None  # e.g. why the clip is named by content
     risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
     device: str | None = None  # where the frames were rendered
+    full_folder: str | None = None  # "no_space": the folder whose disk had no room
 
 
 @dataclass(frozen=True)
@@ -370,16 +372,9 @@ def render_clip_frames(
     previous ones. device: as ClipOptions.device."""
     device = frames_device(device)
     times = frame_times(preset)
-    frame_bytes = preset.width_px * preset.height_px * 3
     shape = (len(times), preset.height_px, preset.width_px, 3)
     with contextlib.ExitStack() as cleanup:
-        if frame_bytes * len(times) <= FRAME_STORE_RAM_BYTES:
-            store = np.empty(shape, np.uint8)
-        else:  # a scratch folder only when the frames do not fit in memory
-            scratch = cleanup.enter_context(
-                tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-")
-            )
-            store = np.lib.format.open_memmap(Path(scratch) / "frames.npy", "w+", np.uint8, shape)
+        store = frame_store(shape, cleanup)
         if device == "cpu":
             rendered = ordered_map(lambda t: frame_at(prepared, preset, t), times, threads)
         else:
@@ -399,6 +394,28 @@ def render_clip_frames(
         for index in palindrome_order(len(times))[len(times):]:
             yield store[index]
         del store
+
+
+def frame_store(shape: tuple[int, ...], cleanup: contextlib.ExitStack) -> np.ndarray:
+    """Room for a clip's forward frames: in memory, or a temporary file whose disk space is
+    reserved first. A sparse file on a temporary disk that filled up killed the whole batch
+    with SIGBUS; now the clip fails at once as out of space, naming the folder."""
+    if math.prod(shape) <= FRAME_STORE_RAM_BYTES:
+        return np.empty(shape, np.uint8)
+    scratch = Path(cleanup.enter_context(
+        tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-")))
+    path = scratch / "frames.npy"
+    store = np.lib.format.open_memmap(path, "w+", np.uint8, shape)
+    try:
+        with path.open("r+b") as handle:
+            os.posix_fallocate(handle.fileno(), 0, path.stat().st_size)
+    except OSError as error:
+        if error.errno not in DISK_FULL_ERRNOS:
+            raise
+        raise OSError(error.errno, f"its {math.prod(shape) / 2**30:.1f} GB of frames need "
+                      "room in the temporary folder: free some, or set TMPDIR to a folder on a "
+                      "larger disk", tempfile.gettempdir()) from error
+    return store
 
 
 def progress_bar(iterable: Iterable | None = None, **options) -> tqdm | LogProgress:
@@ -642,9 +659,10 @@ def make_clip(
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
         if is_disk_full(error):
-            result.status = "no_space"
-            full = Path(error.filename).parent if error.filename else output.parent
-            result.error = disk_full_message(full, source)
+            full = Path(error.filename) if error.filename else output.parent
+            full = full if full.is_dir() else full.parent
+            result.status, result.full_folder = "no_space", str(full)
+            result.error = disk_full_message(full, source, error.strerror)
         else:
             result.error = f"{source}: {type(error).__name__}: {error}"
             result.detail = traceback.format_exc()

@@ -251,8 +251,8 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
     except OSError as error:
         result.output = None
         if is_disk_full(error):
-            result.status, result.error = "no_space", disk_full_message(job.output.parent,
-                                                                        job.source)
+            result.status, result.full_folder = "no_space", str(job.output.parent)
+            result.error = disk_full_message(job.output.parent, job.source, error.strerror)
         else:
             result.status = "failed"
             result.error = (f"{job.output}: the clip could not be written "

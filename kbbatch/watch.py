@@ -129,6 +129,10 @@ SPACE_TO_RESUME_BYTES = 1 << 20
 """After a clip found the output's disk full, photos are taken again once this much more room is
 free than then (a retry with less would fail the same way)."""
 
+SPACE_RETRY_S = 60.0
+"""After a full disk the daemon cannot measure (a Ray node's temporary folder), photos are taken
+again this long after."""
+
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
 
@@ -356,7 +360,7 @@ class JobRunner:
         self.suspects: dict[Path, Suspect] = {}
         self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
         self.encoder_stops: dict[Path, int] = {}  # photos whose encoder a signal stopped
-        self.space_wanted: int | None = None  # free bytes awaited after a full output disk
+        self.space_wanted: tuple[Path, int, float | None] | None = None  # after a full disk
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
         self.manifest = ManifestFollower(settings.manifest)
 
@@ -496,7 +500,7 @@ class JobRunner:
             if result.status == "no_space":  # not the photo's fault: it waits for room
                 self.journal.finish(job.path, "queued", result.seconds, result.error)
                 del self.in_flight[future]
-                self.wait_for_space(result.error)
+                self.wait_for_space(result)
                 self.requeue(job.path, job.renamed)
                 continue
             if result.status == "interrupted":  # ffmpeg stopped from outside: not the photo's
@@ -543,24 +547,31 @@ class JobRunner:
                 self.file_failure(job.path, result)
         removed.intersection_update(job.path for job in self.in_flight.values())
 
-    def wait_for_space(self, error: str | None) -> None:
-        """No photo is taken until the output's disk has SPACE_TO_RESUME_BYTES more room than
-        when a clip found it full: each would fail the same way."""
-        free = free_bytes(self.settings.outbox) or 0
+    def wait_for_space(self, result: ClipResult) -> None:
+        """No photo is taken until the disk that was full (the output's, or the temporary
+        folder's) has SPACE_TO_RESUME_BYTES more room than when the clip found it full: each
+        would fail the same way. A folder this process cannot see (a Ray node's) is tried again
+        after SPACE_RETRY_S."""
+        folder = Path(result.full_folder or self.settings.outbox)
+        free = free_bytes(folder)
         if self.space_wanted is None:
-            log.warning("%s; no photo is taken until %d MB more are free", error,
+            log.warning("%s; no photo is taken until %d MB more are free there", result.error,
                         SPACE_TO_RESUME_BYTES >> 20)
-        self.space_wanted = free + SPACE_TO_RESUME_BYTES
+        retry_at = time.monotonic() + SPACE_RETRY_S if free is None else None
+        self.space_wanted = (folder, (free or 0) + SPACE_TO_RESUME_BYTES, retry_at)
 
     def has_space(self) -> bool:
         if self.space_wanted is None:
             return True
-        free = free_bytes(self.settings.outbox)
-        if free is None or free < self.space_wanted:
+        folder, wanted, retry_at = self.space_wanted
+        free = free_bytes(folder)
+        if retry_at is not None and time.monotonic() < retry_at:
+            return False
+        if retry_at is None and (free is None or free < wanted):
             return False
         self.space_wanted = None
-        log.info("%s has room again (%d MB free): taking photos again", self.settings.outbox,
-                 free >> 20)
+        log.info("%s has room again (%s MB free): taking photos again", folder,
+                 "?" if free is None else free >> 20)
         return True
 
     def recover_from_worker_death(self) -> None:
@@ -810,7 +821,8 @@ def status_lines(outbox: Path) -> list[str]:
     try:
         counts = journal.counts()
         lines = [", ".join(f"{state} {count}" for state, count in counts.items())]
-        lines += [f"FAILED {job.source}: {job.error}" for job in journal.jobs("failed")]
+        lines += [f"FAILED {job.source}: {(job.error or '').removeprefix(f'{job.source}: ')}"
+                  for job in journal.jobs("failed")]  # errors most often begin with the path
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]
         running = journal.jobs("running")
         if running and not _folder_in_use(outbox):  # its run was killed (kill -9, power cut)

@@ -200,3 +200,34 @@ def test_the_run_report_names_the_photo_folder_by_its_absolute_path(tmp_path, mo
     report = json.loads((tmp_path / "out" / "kbbatch-report.json").read_text())
     assert report["folder"] == str(tmp_path / "photos")
     assert report["output_folder"] == str(tmp_path / "out")
+
+
+def test_render_refuses_more_threads_than_four_per_core(tmp_path):
+    """--threads 1000 kept two frames per thread in memory (a typo away from running out)."""
+    import os
+
+    from click.testing import CliRunner
+
+    (tmp_path / "in").mkdir()
+    most = cli.JOBS_PER_CORE_MAX * (os.cpu_count() or 1)
+    result = CliRunner().invoke(cli.main, ["render", str(tmp_path / "in"), "-o",
+                                           str(tmp_path / "out"), "--threads", str(most + 1)])
+    assert result.exit_code == 2 and f"at most {most} here" in result.output, result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_status_names_a_failed_photo_once(tmp_path):
+    from click.testing import CliRunner
+
+    from kbbatch.journal import Journal
+
+    photo = tmp_path / "IMG_1.jpg"
+    journal = Journal(tmp_path / "out")
+    try:
+        journal.start(photo, "1:1", "settings", "IMG_1.mp4", "content")
+        journal.finish(photo, "failed", 1.0, f"{photo}: EncodeError: ffmpeg failed")
+    finally:
+        journal.close()
+    result = CliRunner().invoke(cli.main, ["status", str(tmp_path / "out")])
+    assert f"FAILED {photo}: EncodeError: ffmpeg failed" in result.output, result.output
+    assert result.output.count(str(photo)) == 1

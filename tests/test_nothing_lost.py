@@ -241,6 +241,35 @@ def test_a_clip_its_disk_cannot_take_stops_the_batch_and_fails_no_photo(tmp_path
     assert visible_clips(out) == ["p0.mp4", "p1.mp4", "p2.mp4"]
 
 
+@pytest.mark.slow
+def test_a_temporary_folder_too_small_for_the_frames_stops_the_batch_without_a_crash(
+        tmp_path, tiny_mount):
+    """Frames over the memory budget went to a sparse file in TMPDIR: when that disk filled,
+    the batch died of SIGBUS, with no report, a partial clip and the photo left running."""
+    folder = tmp_path / "in"
+    for index in range(2):
+        photo(folder / f"p{index}.jpg", seed=index)
+    preset = tmp_path / "big.toml"  # 180 forward frames of 1080p: 1.1 GB, over the 1 GiB budget
+    preset.write_text('base = "preview"\nwidth_px = 1920\nheight_px = 1080\nfps = 120\n'
+                      'duration_s = 1.5\n')
+    out = tmp_path / "out"
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", "--depth", "ramp",
+                          "--planner", "center", "--preset", str(preset)],
+                         capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "TMPDIR": str(tiny_mount)})
+    assert run.returncode == 1, (run.returncode, run.stderr)
+    assert "Traceback" not in run.stderr
+    assert f"{tiny_mount}: its disk is full" in run.stderr and "TMPDIR" in run.stderr, run.stderr
+    assert json.loads((out / batch.REPORT_NAME).read_text())["stopped_by"] == batch.DISK_FULL
+    assert list(tiny_mount.iterdir()) == [] and not list(out.glob(".*part*"))
+    journal = Journal(out)
+    try:
+        assert [job.name for job in journal.jobs("queued")] == ["p0.jpg"]
+        assert not journal.jobs("failed") and not journal.jobs("running")
+    finally:
+        journal.close()
+
+
 # --- 4: kills -------------------------------------------------------------------------------
 def start_batch(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
     command = [*CLI, str(folder), "-o", str(out), "--depth", "ramp", "--planner", "center",
