@@ -110,6 +110,9 @@ REPORT_NAME = "kbbatch-report.json"
 PHOTO_KINDS = "jpg, jpeg, png, webp, tif, tiff, bmp"
 
 
+HIDDEN_REASON = "hidden (the name starts with a dot); not taken: rename to render"
+
+
 class EmptyFolderError(ValueError):
     """Nothing to do: no photo in the folder (and no manifest entry naming one)."""
 
@@ -187,6 +190,8 @@ def run_folder(
                  if scan.subfolders else "")
         if scan.unread_formats:
             where += f"; {_some(scan.unread_formats)}: {UNREAD_FORMAT_REASON}"
+        if scan.hidden:
+            where += f"; {_some(scan.hidden)}: {HIDDEN_REASON}"
         raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
                                "written")
     check_writable(output_folder)
@@ -196,6 +201,8 @@ def run_folder(
              for sub in scan.subfolders]
     notes += [f"{path}: {UNREAD_FORMAT_REASON}" for path in scan.unread_formats]
     notes += [f"{path}: {OLD_PLAN_SHEET_REASON}" for path in scan.plan_sheets]
+    if scan.hidden:
+        notes.append(f"{folder}: {_some(scan.hidden)}: {HIDDEN_REASON}")
     notes += [f"{path}: the depth map of {image} in {manifest.path}; not rendered as a photo"
               for path, image in maps.items() if image]
     for link in scan.broken_links:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import functools
 import io
+import logging
 import os
 import re
 import shutil
@@ -42,6 +43,7 @@ ALPHA_MATTE_RGB = (0, 0, 0)
 
 Image.MAX_IMAGE_PIXELS = None  # we enforce our own, clearer limit below
 
+log = logging.getLogger(__name__)
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -117,6 +119,7 @@ class FolderScan:
     not_files: list[Path] = field(default_factory=list)  # a photo's name on a pipe, a device
     unread_formats: list[Path] = field(default_factory=list)  # HEIC, raw: not read
     plan_sheets: list[Path] = field(default_factory=list)  # an old `kbbatch plan`'s sheet
+    hidden: list[Path] = field(default_factory=list)  # `.IMG_1.jpg`: photos by name, not taken
 
 
 def broken_link_reason(link: Path) -> str:
@@ -160,12 +163,26 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     found: dict[str | None, list[Path]] = {"photo": [], "broken_link": [], "subfolder": [],
                                            "not_file": [], "unread_format": [],
                                            "plan_sheet": []}
+    hidden = []
     for path in sorted(folder.iterdir()):
-        if path.name.startswith(".") or path.name in ignore:
+        if path.name in ignore:
+            continue
+        if path.name.startswith("."):  # a hidden file (or kbbatch's own temporary one)
+            if is_hidden_photo(path):
+                hidden.append(path)
             continue
         found.setdefault(entry_kind(path), []).append(path)
     return FolderScan(found["photo"], found["broken_link"], found["subfolder"],
-                      found["not_file"], found["unread_format"], found["plan_sheet"])
+                      found["not_file"], found["unread_format"], found["plan_sheet"], hidden)
+
+
+def is_hidden_photo(path: Path) -> bool:
+    """A photo's name made hidden by a leading dot: said, not taken (hidden files are not
+    the user's photos to render, but one skipped without a word looked lost). macOS's `._`
+    resource forks and kbbatch's temporary files are no photos."""
+    return (path.name.startswith(".") and not path.name.startswith("._")
+            and not TEMP_NAME.match(path.name) and is_image_file(path.with_name(path.name[1:]))
+            and path.is_file())
 
 
 TRUNCATED_JPEG_ROWS = 16
@@ -222,6 +239,9 @@ def read_image(path: Path) -> np.ndarray:
                                      f"the last {TRUNCATED_JPEG_ROWS} rows or more are blank "
                                      "mid grey; if the picture really ends in a #808080 band, "
                                      "save it as PNG)")
+            if getattr(image, "n_frames", 1) > 1:  # an animated WebP, a multi-page TIFF
+                log.warning("%s: holds %d frames or pages; the first is used", path,
+                            image.n_frames)
             image = ImageOps.exif_transpose(in_srgb(image))
             return _to_rgb8(image)
     except ImageReadError:

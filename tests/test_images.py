@@ -183,3 +183,15 @@ def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
     assert abs(int(read[0, -1, 0]) - 255) <= 1 and abs(int(read[0, 128, 0]) - 128) <= 1
     Image.fromarray(ramp * 255.0, mode="F").save(tmp_path / "bytes.tif")  # 0-255 as before
     assert np.abs(read_image(tmp_path / "bytes.tif").astype(int) - read.astype(int)).max() <= 1
+
+
+def test_an_animated_photo_is_read_from_its_first_frame_and_says_so(tmp_path, caplog):
+    import logging
+
+    frames = [Image.fromarray(np.full((32, 48, 3), level, np.uint8)) for level in (40, 200)]
+    frames[0].save(tmp_path / "moving.webp", save_all=True, append_images=frames[1:],
+                   lossless=True, duration=100)
+    with caplog.at_level(logging.WARNING):
+        read = read_image(tmp_path / "moving.webp")
+    assert abs(int(read.mean()) - 40) <= 1
+    assert "moving.webp: holds 2 frames or pages; the first is used" in caplog.text

@@ -528,6 +528,21 @@ def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):
     assert "IMG_0001.HEIC: a photo format kbbatch does not read" in run.stderr
 
 
+def test_hidden_photos_are_said_not_passed_over_in_silence(tmp_path, quick_preset):
+    """`.IMG_0001.jpg` alone gave `no photos here`, beside others it was left out unsaid."""
+    photo(tmp_path / "hidden" / ".IMG_0001.jpg", seed=0)
+    (tmp_path / "hidden" / "._IMG_0002.jpg").write_bytes(b"\0\5\26\7 mac resource fork")
+    run = subprocess.run([*CLI, str(tmp_path / "hidden"), "-o", str(tmp_path / "out")],
+                         capture_output=True, text=True)
+    assert run.returncode == 3, run.stderr
+    assert ".IMG_0001.jpg: hidden (the name starts with a dot)" in run.stderr, run.stderr
+    assert "._IMG_0002" not in run.stderr
+    photo(tmp_path / "hidden" / "IMG_0003.jpg", seed=1)
+    report = run_folder(tmp_path / "hidden", tmp_path / "out", quick_preset, FAST, False)
+    assert [Path(r.source).name for r in report.results] == ["IMG_0003.jpg"]
+    assert any(".IMG_0001.jpg: hidden" in note for note in report.notes), report.notes
+
+
 def test_progress_into_a_log_has_no_zero_lines_or_escape_codes(tmp_path):
     for index in range(2):
         photo(tmp_path / "in" / f"p{index}.jpg", seed=index)
