@@ -72,9 +72,24 @@ RAY_CONNECT_TIMEOUT_S = 10.0
 """How long a cluster's head may take to accept a connection: ray.init waited without end (and
 logged its retries) for a head that is not there."""
 
+RAY_NODE_WAIT_ENV = "KBBATCH_RAY_NODE_WAIT_S"
 RAY_NODE_WAIT_S = 30.0
 """How long a cluster may take to show a node with the resources a clip asks for (a node still
-joining) before the run is refused: Ray itself waits for one without end, and says nothing."""
+joining; an autoscaler's takes minutes: $KBBATCH_RAY_NODE_WAIT_S) before the run is refused:
+Ray itself waits for one without end, and says nothing."""
+
+
+def node_wait_s() -> float:
+    text = os.environ.get(RAY_NODE_WAIT_ENV)
+    if not text:
+        return RAY_NODE_WAIT_S
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not 0 <= seconds < float("inf"):
+        raise RayUnavailableError(f"{RAY_NODE_WAIT_ENV}={text!r} is not a number of seconds")
+    return seconds
 
 
 class RayUnavailableError(RuntimeError):
@@ -381,7 +396,7 @@ class RayExecutor:
                 signal.signal(sig, handler)
         joined = self.address or os.environ.get("RAY_ADDRESS")
         check_resources(ray, self.cpus_per_clip, self.gpus_per_clip,
-                        RAY_NODE_WAIT_S if joined else 0.0)
+                        node_wait_s() if joined else 0.0)
         remote_clip = ray.remote(
             num_cpus=self.cpus_per_clip, num_gpus=self.gpus_per_clip,
             max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,

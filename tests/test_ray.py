@@ -510,9 +510,11 @@ def test_resources_no_node_offers_are_refused_naming_what_the_nodes_have(
         cluster, photo_folder, tmp_path):
     """Ray waited without end and without a word for a node with a GPU (or 2 CPUs) per clip."""
     output = tmp_path / "out"
-    run = run_kbbatch(cluster, photo_folder, output, "--ray-gpus-per-clip", "1")
+    env = dict(cluster.env, RAY_ADDRESS=cluster.address, KBBATCH_RAY_NODE_WAIT_S="2")
+    run = subprocess.run(kbbatch_command(photo_folder, output, "--ray-gpus-per-clip", "1"),
+                         env=env, capture_output=True, text=True, timeout=150)
     assert run.returncode == 1, run.stderr
     assert "no node of the Ray cluster offers 1 CPU(s) and 1 GPU(s) for a clip" in run.stderr
-    assert "1 CPU(s), 0 GPU(s); 1 CPU(s), 0 GPU(s)" in run.stderr, run.stderr
-    assert "waiting up to 30 s" in run.stderr
+    assert "(its nodes: 1 CPU(s), 0 GPU(s)" in run.stderr, run.stderr  # (one, if killed before)
+    assert "waiting up to 2 s" in run.stderr
     assert not output.exists()

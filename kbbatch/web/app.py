@@ -420,7 +420,8 @@ class ReviewSession:
                 if result.status != "done":
                     if result.detail:
                         log.error("preview of %s failed:\n%s", name, result.detail)
-                    raise RequestError(422, result.error or f"{name}: preview failed")
+                    status = 507 if result.status == "no_space" else 422  # storage, not photo
+                    raise RequestError(status, result.error or f"{name}: preview failed")
         return key
 
     def preview_path(self, key: str) -> Path:
