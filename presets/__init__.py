@@ -76,15 +76,16 @@ def _check(data: dict[str, Any], source: str, complete: bool) -> None:
     rules = schema() if complete else {k: v for k, v in schema().items() if k != "required"}
     errors = sorted(jsonschema.Draft202012Validator(rules).iter_errors(data),
                     key=lambda e: list(e.absolute_path))
-    if errors:
-        error = errors[0]
-        if error.validator == "additionalProperties":
-            unknown = sorted(set(data) - set(rules["properties"]))
-            raise PresetError(f"{source}: unknown setting(s) {', '.join(unknown)}; known: "
-                              f"{', '.join(rules['properties'])}")
-        field = ".".join(str(p) for p in error.absolute_path)
-        where = f"{source}: setting '{field}':" if field else f"{source}:"
-        raise PresetError(f"{where} {error.message}")
+    if any(error.validator == "additionalProperties" for error in errors):
+        unknown = sorted(set(data) - set(rules["properties"]))
+        raise PresetError(f"{source}: unknown setting(s) {', '.join(unknown)}; known: "
+                          f"{', '.join(rules['properties'])}")
+    if errors:  # every one at once: a file with two bad sizes was fixed in two rounds
+        said = []
+        for error in errors:
+            field = ".".join(str(p) for p in error.absolute_path)
+            said.append(f"setting '{field}': {error.message}" if field else error.message)
+        raise PresetError(f"{source}: {'; '.join(said)}")
     for name, value in data.items():
         if isinstance(value, float) and not math.isfinite(value):
             raise PresetError(f"{source}: setting '{name}' must be a finite number, got {value}")

@@ -197,3 +197,13 @@ def test_a_codec_no_mp4_holds_fails_when_the_preset_loads_not_at_every_photo(tmp
                  + ('pix_fmt = "rgb8"\n' if codec == "gif" else ""))
     with pytest.raises(PresetError, match=rf"{codec}\.toml: setting 'codec'.*container"):
         load_preset(path)
+
+
+def test_a_preset_with_several_bad_settings_names_them_all(tmp_path):
+    path = tmp_path / "odd.toml"
+    path.write_text('base = "preview"\nwidth_px = 1921\nheight_px = 1081\n')
+    with pytest.raises(PresetError) as caught:
+        load_preset(str(path))
+    message = str(caught.value)
+    assert "setting 'width_px': 1921 is not a multiple of 2" in message, message
+    assert "setting 'height_px': 1081 is not a multiple of 2" in message, message
