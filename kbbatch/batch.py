@@ -367,13 +367,16 @@ def existing_manifest(manifest_path: Path) -> Manifest | None:
     """The manifest `plan -o` would write over, or None where there is none. Anything else
     there (a photo, a hand-written file kbbatch cannot read) is refused, not replaced: the
     default `-o manifest.json` replaced a photo or a user's edits without a word."""
-    from kbbatch.manifest import ManifestError, load_manifest
+    from kbbatch.manifest import ManifestError, is_read_only, load_manifest
 
     if not manifest_path.exists() and not manifest_path.is_symlink():
         return None
     if not manifest_path.is_file():  # a pipe would block the read for good
         raise OutputFolderError(f"{manifest_path}: not a regular file; not replaced: give -o "
                                 "another file")
+    if is_read_only(manifest_path):
+        raise OutputFolderError(f"{manifest_path}: read-only (its write permission is off); "
+                                "not replaced: make it writable or give -o another file")
     try:
         return load_manifest(manifest_path)
     except ManifestError as error:

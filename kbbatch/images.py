@@ -13,6 +13,7 @@ import logging
 import os
 import re
 import shutil
+import stat
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -331,7 +332,13 @@ def atomic_output(final_path: Path, suffix: str, make_folder: bool = True):
     temp_path = Path(temp_name)
     try:
         yield temp_path
-        os.chmod(temp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
+        # mkstemp makes 0600: a file replaced keeps its own mode (a private 0600 manifest
+        # became world-readable), a new one gets what open() would give
+        try:
+            mode = stat.S_IMODE(os.stat(final_path).st_mode)
+        except OSError:
+            mode = 0o666 & ~_UMASK
+        os.chmod(temp_path, mode)
         os.replace(temp_path, final_path)
     finally:
         temp_path.unlink(missing_ok=True)

@@ -7,6 +7,7 @@ the image and the field.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -282,6 +283,19 @@ def write_manifest(path: Path, entries: dict[str, dict[str, Any]]) -> None:
     and linked in was replaced by a plain file, and the kept one silently went stale."""
     from kbbatch.images import atomic_output
 
+    real = Path(os.path.realpath(path))
+    if is_read_only(real):
+        raise PermissionError(errno.EACCES, "read-only (its write permission is off); not "
+                              "replaced", str(path))
     text = json.dumps({"version": 1, "images": entries}, indent=2)
-    with atomic_output(Path(os.path.realpath(path)), ".json") as temp_path:
+    with atomic_output(real, ".json") as temp_path:
         temp_path.write_text(text + "\n", encoding="utf-8")
+
+
+def is_read_only(path: Path) -> bool:
+    """A file whose write permission is off for everyone: the user's way to say "keep"; a
+    rename would replace it all the same (for root, and for any owner of the folder)."""
+    try:
+        return not os.stat(path).st_mode & 0o222
+    except OSError:
+        return False

@@ -127,6 +127,7 @@ def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = No
     except OSError as error:  # a file of that name, or no right to make it
         raise ModelError(f"{directory}: the model cache cannot be made there "
                          f"({error.strerror or error})") from error
+    cached_before = (directory / spec.filename).is_file()
     try:
         path = Path(pooch.retrieve(
             spec.url, known_hash=f"sha256:{expected}" if expected else None,
@@ -136,6 +137,8 @@ def pull(spec: ModelSpec, directory: Path | None = None, sha256: str | None = No
         raise ModelError(f"{spec.name}: download refused, sha256 mismatch ({error})") from error
     except Exception as error:
         raise ModelError(f"{spec.name}: download from {spec.url} failed ({error})") from error
+    if expected is None and cached_before:  # the user's (or a --sha256 pull's): never removed
+        return path
     if expected is None:
         from kbbatch.fingerprint import file_sha256
 

@@ -32,11 +32,12 @@ class Served:
     url: str
     port: int
     session: ReviewSession
+    address: str = "127.0.0.1"
 
     def request(self, method: str, path: str, body: bytes | None = None,
                 headers: dict[str, str] | None = None) -> Reply:
         """Send the path exactly as given (no client-side normalisation of '..' or '%2f')."""
-        connection = http.client.HTTPConnection("127.0.0.1", self.port, timeout=120)
+        connection = http.client.HTTPConnection(self.address, self.port, timeout=120)
         try:
             connection.request(method, path, body=body, headers=headers or {})
             response = connection.getresponse()
@@ -68,14 +69,14 @@ class Served:
 
 
 @contextmanager
-def running_server(folder: Path, manifest: Path, preset: Preset, options: ClipOptions
-                   ) -> Iterator[Served]:
+def running_server(folder: Path, manifest: Path, preset: Preset, options: ClipOptions,
+                   host: str = "127.0.0.1") -> Iterator[Served]:
     session = ReviewSession(folder, manifest, preset, options, ())
-    server = ReviewServer(session, "127.0.0.1", 0)
+    server = ReviewServer(session, host, 0)
     thread = threading.Thread(target=server.serve, daemon=True)
     thread.start()
     try:
-        yield Served(server.url, server.port, session)
+        yield Served(server.url, server.port, session, host.strip("[]"))
     finally:
         server.shutdown()
         thread.join(timeout=10)

@@ -92,6 +92,14 @@ def test_unpinned_model_needs_the_users_checksum(tmp_path, server):
     assert not list(tmp_path.glob("*.onnx"))
     path = models.pull(spec_for(f"{base}/good", None), tmp_path, sha256=actual, progress=False)
     assert path.is_file()
+    # pulled again without the checksum: the cached file was deleted ("not kept")
+    assert models.pull(spec_for(f"{base}/good", None), tmp_path, progress=False) == path
+    assert path.read_bytes() == payload
+    placed = tmp_path / "placed"  # a file the user put there by hand is never removed either
+    placed.mkdir()
+    (placed / path.name).write_bytes(b"the user's own export")
+    models.pull(spec_for(f"{base}/good", None), placed, progress=False)
+    assert (placed / path.name).read_bytes() == b"the user's own export"
 
 
 def test_missing_model_error_names_the_pull_command(tmp_path, monkeypatch):

@@ -282,6 +282,29 @@ def test_plan_into_an_existing_file_never_loses_what_is_there(tmp_path, quick_pr
         plan_folder(folder, tmp_path / "pipe.json", quick_preset, options, show_progress=False)
 
 
+def test_a_manifest_keeps_its_permissions_and_a_read_only_one_is_not_replaced(
+        tmp_path, quick_preset):
+    """Every save made the manifest 0644 (a private 0600 one became world-readable), and a
+    read-only one was replaced all the same."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320, 1)).save(folder / "a.jpg")
+    options = ClipOptions(planner="center", threads=2)
+    private = tmp_path / "private.json"
+    private.write_text(json.dumps({"version": 1, "images": {}}))
+    private.chmod(0o600)
+    plan_folder(folder, private, quick_preset, options, show_progress=False)
+    assert "a.jpg" in json.loads(private.read_text())["images"]
+    assert private.stat().st_mode & 0o777 == 0o600
+    kept = tmp_path / "kept.json"
+    kept.write_text(json.dumps({"version": 1, "images": {"a.jpg": {"planner": "2d"}}}))
+    kept.chmod(0o444)
+    before = kept.read_text()
+    with pytest.raises(OutputFolderError, match=r"kept.json: read-only .* not replaced"):
+        plan_folder(folder, kept, quick_preset, options, show_progress=False)
+    assert kept.read_text() == before and kept.stat().st_mode & 0o777 == 0o444
+
+
 def test_plan_keeps_an_edit_saved_while_it_plans_and_skips_the_maps_it_names(
         tmp_path, quick_preset, monkeypatch):
     """plan wrote back the manifest it read at the start: an exclude saved from `kbbatch

@@ -24,6 +24,7 @@ from kbbatch.images import write_image
 from kbbatch.manifest import load_manifest
 from kbbatch.pipeline import ClipOptions
 from kbbatch.presets import load_preset, with_overrides
+from kbbatch.web.app import TOKEN_HEADER
 from tests.conftest import textured_image
 from tests.reviewserver import running_server
 
@@ -378,3 +379,25 @@ def test_the_page_follows_a_depth_map_edited_while_open_and_says_what_is_wrong(
     assert refused.value.status == 500 and "m.json: cannot be written" in refused.value.message
     session.stop()
     assert not session.cache_dir.exists()  # the run's own folder goes with it
+
+
+def test_an_ipv6_loopback_host_keeps_the_rebinding_guard_and_a_valid_url(folder, manifest,
+                                                                         preset):
+    """`--host ::1` served any Host header (the guard knew only the spelling `[::1]`), so a
+    page elsewhere could save through DNS rebinding; and it printed http://::1:PORT/."""
+    import socket
+
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+    except OSError as error:
+        pytest.skip(f"no IPv6 loopback here: {error}")
+    with running_server(folder, manifest, preset, OPTIONS, host="::1") as served:
+        assert served.url == f"http://[::1]:{served.port}/"
+        foreign = served.request("GET", "/api/photos", headers={"Host": "attacker.test"})
+        assert foreign.status == 403, foreign.body
+        saved = served.request("POST", "/api/save", b'{"entries": {}}', headers={
+            "Host": "attacker.test", "Content-Type": "application/json",
+            TOKEN_HEADER: served.session.token})
+        assert saved.status == 403
+        assert served.get("/api/photos").status == 200  # http.client names [::1]:PORT

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import ipaddress
 import json
 import logging
 import secrets
@@ -441,6 +442,15 @@ def _json_body() -> dict[str, Any]:
     return data
 
 
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def _host_name(host_header: str | None) -> str:
     """'127.0.0.1:8765' -> '127.0.0.1', '[::1]:8765' -> '[::1]'."""
     host = host_header or ""
@@ -553,11 +563,20 @@ class ReviewServer:
     """The threaded HTTP server of a session, on host:port (port 0: any free port)."""
 
     def __init__(self, session: ReviewSession, host: str = "127.0.0.1", port: int = 0) -> None:
-        hosts = LOCAL_HOSTS if host in LOCAL_HOSTS else None
+        bare = host.strip("[]")
+        in_url = f"[{bare}]" if ":" in bare else bare  # an IPv6 address is bracketed in a URL
+        # A loopback address in any spelling (::1 turned the DNS-rebinding guard off) serves
+        # only requests that name a local host; another address is exposed on purpose.
+        hosts = (*LOCAL_HOSTS, in_url) if is_loopback(bare) else None
         self.session = session
-        self.server = make_server(host, port, create_app(session, hosts), threaded=True)
+        self.server = make_server(bare, port, create_app(session, hosts), threaded=True)
         self.port = self.server.server_port
-        self.url = f"http://{host if host != '0.0.0.0' else '127.0.0.1'}:{self.port}/"
+        shown = {"0.0.0.0": "127.0.0.1", "::": "[::1]"}.get(bare, in_url)
+        self.url = f"http://{shown}:{self.port}/"
+        if hosts is None:
+            log.warning("serving on %s:%d: the page, the photos and the token that lets a page "
+                        "edit the manifest are open to every machine that reaches it",
+                        in_url, self.port)
 
     def serve(self, ready: Callable[[str], None] | None = None) -> None:
         self.session.start_planning()
