@@ -30,6 +30,7 @@ from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
     clip_name_note,
+    folder_identity,
     output_names,
     remove_partial_clips,
 )
@@ -225,12 +226,12 @@ def run_folder(
     names = output_names(scan.photos)
     bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
                        disable=not show_progress)
-    identity = _folder_identity(output_folder)
+    identity = folder_identity(output_folder)
 
     def jobs() -> Iterator[ClipJob]:
         """The photos to make, each started in the journal as the executor takes it."""
         for photo in scan.photos:
-            if _folder_identity(output_folder) != identity:
+            if folder_identity(output_folder) != identity:
                 stop["by"] = FOLDER_GONE
             if stop:
                 return
@@ -275,7 +276,7 @@ def run_folder(
         journal.close()
         report = RunReport(str(folder.absolute()), str(output_folder), preset.name, results,
                            notes, stop.get("by"), options.device, providers_used())
-        if _folder_identity(output_folder) != identity:  # not made again: the user's doing
+        if folder_identity(output_folder) != identity:  # not made again: the user's doing
             lock.release()
             raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
                                     "stopped there (the clips made before are where the "
@@ -292,17 +293,6 @@ def run_folder(
 
 FOLDER_GONE = "the output folder removed or renamed"
 DISK_FULL = "a full output disk"
-
-
-def _folder_identity(folder: Path) -> tuple[int, int] | None:
-    """(device, inode) of a folder, None where there is none: a folder removed or renamed
-    mid-run was made again by the next clip, its journal lost, and the re-run duplicated
-    every clip under content names."""
-    try:
-        stat = os.stat(folder)
-    except OSError:
-        return None
-    return stat.st_dev, stat.st_ino
 
 
 def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,

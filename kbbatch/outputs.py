@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import tempfile
 from collections import Counter
 from pathlib import Path
@@ -36,6 +37,16 @@ def output_names(sources: list[Path]) -> dict[Path, str]:
 
 class OutputFolderError(OSError):
     pass
+
+
+def folder_identity(folder: Path) -> tuple[int, int] | None:
+    """(device, inode) of a folder, None where there is none: a folder removed or renamed
+    while a runner uses it is not the folder it started with, even when made again."""
+    try:
+        stat = os.stat(folder)
+    except OSError:
+        return None
+    return stat.st_dev, stat.st_ino
 
 
 def check_writable(folder: Path) -> None:

@@ -59,6 +59,7 @@ from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
     clip_name_note,
+    folder_identity,
     output_names,
     remove_partial_clips,
 )
@@ -363,6 +364,18 @@ class JobRunner:
         self.space_wanted: tuple[Path, int, float | None] | None = None  # after a full disk
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
         self.manifest = ManifestFollower(settings.manifest)
+        self.identities = {folder: folder_identity(folder)
+                           for folder in (settings.inbox, settings.outbox)}
+
+    def folders_gone(self) -> str | None:
+        """The inbox or the output folder removed, renamed or made again since the start: the
+        daemon watched a folder nobody used (silently), or filed every photo as failed when
+        its clip found no output folder."""
+        for folder, identity in self.identities.items():
+            if folder_identity(folder) != identity:
+                which = "inbox" if folder == self.settings.inbox else "output folder"
+                return f"{folder}: the {which} was removed, renamed or made again"
+        return None
 
     def recover(self) -> None:
         """After a crash: drop partial clips, and settle jobs whose clip was already renamed."""
@@ -490,6 +503,11 @@ class JobRunner:
                 self.requeue(job.path, False)
                 continue
             self.worker_deaths.pop(job.path, None)
+            gone = self.folders_gone()
+            if result.status != "done" and gone:  # the folder's fault, not the photo's
+                del self.in_flight[future]
+                log.warning("%s: not made (%s); left where it is", job.path.name, gone)
+                continue
             if result.status in ("failed", "interrupted", "no_space") and not job.path.exists():
                 # deleted from the inbox while it was processed: the user's choice, no failure
                 self.journal.forget(job.path)
@@ -747,8 +765,15 @@ class Daemon:
                  s.outbox, s.preset.name, s.jobs, "polling" if s.poll else "inotify",
                  options.device)
         jobs.pool = jobs.new_pool()
+        exit_code = 0
         try:
             while not self.stopping.is_set() or jobs.in_flight:
+                gone = jobs.folders_gone()
+                if gone and not self.stopping.is_set():
+                    log.error("%s while the daemon ran; stopping (photos not made stay in "
+                              "the inbox): start it again on the folders as they are now", gone)
+                    exit_code = 1
+                    self.stopping.set()
                 try:
                     self.inbox.collect_events()
                     jobs.submit_ready(self.inbox, options, self.stopping)
@@ -768,7 +793,7 @@ class Daemon:
         observer.join()
         journal.close()
         log.info("stopped")
-        return 0
+        return exit_code
 
 
 def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None],

@@ -594,3 +594,33 @@ def test_workers_forked_after_the_start_up_model_check_make_their_clips(tmp_path
     finally:
         assert stop(daemon) == 0
     assert "depth from onnx (depth-anything-v2-small)" in daemon_log(tmp_path)
+
+
+@pytest.mark.parametrize("removed", ["outbox", "inbox"])
+def test_a_folder_removed_under_the_daemon_stops_it_and_fails_no_photo(tmp_path, removed):
+    """Its output folder removed, the daemon filed every later photo as failed (its clip found
+    no folder); its inbox moved away or made again, it watched nothing, without a word."""
+    import shutil
+
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: (inbox / "done" / "a.jpg").is_file(), 240, "a.jpg")
+        if removed == "outbox":
+            shutil.rmtree(outbox)
+            drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
+        else:
+            inbox.rename(tmp_path / "inbox-moved")
+            inbox.mkdir()  # made again, as a script that cleans up would
+            drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
+        daemon.wait(timeout=120)
+    finally:
+        if daemon.poll() is None:
+            stop(daemon)
+    assert daemon.returncode == 1, daemon_log(tmp_path)
+    log = daemon_log(tmp_path)
+    which = "output folder" if removed == "outbox" else "inbox"
+    assert f"the {which} was removed, renamed or made again" in log, log
+    assert "Traceback" not in log
+    assert (inbox / "b.jpg").is_file() and not (inbox / "failed").exists()
