@@ -18,11 +18,12 @@ from kbbatch.depth import DepthError
 from kbbatch.images import (
     OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
+    FolderScan,
     ImageReadError,
     atomic_output,
     broken_link_reason,
-    list_images,
     read_image,
+    scan_folder,
 )
 from kbbatch.manifest import Manifest, ManifestEntry
 from kbbatch.models import providers_used
@@ -118,6 +119,17 @@ class EmptyFolderError(ValueError):
     """Nothing to do: no photo in the folder (and no manifest entry naming one)."""
 
 
+def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
+    """Said alike by the batch and `plan`: what the folder holds that is no photo to take."""
+    where = f"; subfolders are not searched: {_some(scan.subfolders)}" if scan.subfolders else ""
+    if scan.unread_formats:
+        where += f"; {_some(scan.unread_formats)}: {UNREAD_FORMAT_REASON}"
+    if scan.hidden:
+        where += f"; {_some(scan.hidden)}: {HIDDEN_REASON}"
+    return EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
+                            "written")
+
+
 @contextlib.contextmanager
 def stop_on_sigterm(stop: dict) -> Iterator[None]:
     """SIGTERM asks the batch to stop after the clip in progress, as it asks the daemon."""
@@ -174,7 +186,6 @@ def run_folder(
     and the journal says which photos are left. Naming, the journal, the lock and the report
     stay here; the executor only makes clips (here, or on a cluster).
     """
-    from kbbatch.images import scan_folder
     from kbbatch.journal import FolderLock, Journal, JournalError
 
     executor = executor or LocalExecutor()
@@ -187,14 +198,7 @@ def run_folder(
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
                if manifest is not None else [])
     if not scan.photos and not scan.broken_links and not scan.not_files and not missing:
-        where = (f"; subfolders are not searched: {_some(scan.subfolders)}"
-                 if scan.subfolders else "")
-        if scan.unread_formats:
-            where += f"; {_some(scan.unread_formats)}: {UNREAD_FORMAT_REASON}"
-        if scan.hidden:
-            where += f"; {_some(scan.hidden)}: {HIDDEN_REASON}"
-        raise EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
-                               "written")
+        raise empty_folder_error(folder, scan)
     check_writable(output_folder)
     lock = FolderLock(output_folder, "writing clips into")
     results: list[ClipResult] = []
@@ -409,13 +413,16 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
 
     if manifest_path.is_dir():
         raise OutputFolderError(f"{manifest_path}: is a folder; give the manifest's file name")
+    scan = scan_folder(folder)
+    if not scan.photos:  # as the batch: nothing written (it wrote an empty manifest, status 0)
+        raise empty_folder_error(folder, scan)
     existing = existing_manifest(manifest_path)
     check_writable(manifest_path.parent)  # before the planning, not after it
     preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
     results: list[PlanResult] = []
     planned_entries: dict[str, dict] = {}
     previews = []
-    sources = [source for source in list_images(folder)
+    sources = [source for source in scan.photos
                if not (existing and existing.depth_map_of(source))]  # a map it names: no photo
     names = output_names(sources)
     for source in progress_bar(sources, desc="planning", unit="photo",

@@ -313,6 +313,9 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
     try:
         results = plan_folder(folder, manifest_path, preset, options, show_progress=not quiet,
                               replan=replan)
+    except EmptyFolderError as error:
+        click.echo(f"Error: {error}", err=True)
+        sys.exit(EXIT_NOTHING_TO_DO)
     except OSError as error:  # the folder, or where the manifest and previews go
         raise click.ClickException(str(error) if isinstance(error, OutputFolderError) else
                                    f"{error.filename or manifest_path}: "

@@ -110,6 +110,11 @@ def builtin_names() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
+PRESET_BASES_MAX = 16
+"""A preset's chain of bases is at most this long (a chain of 1,200 files overflowed Python's
+stack with a traceback)."""
+
+
 def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
           ) -> tuple[dict[str, Any], str]:
     """The settings of a preset file with its bases applied (not yet complete-checked)."""
@@ -134,6 +139,7 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
         except OSError as error:
             raise PresetError(f"{path}: cannot be read ({error.strerror or error})") from error
         source, stem, folder = str(path), path.stem, path.parent
+        key = str(path.resolve())  # `../pre/a.toml` from pre/a.toml is a.toml itself
     else:
         resource = resources.files(__name__) / f"{name_or_path}.toml"
         if not resource.is_file():
@@ -142,8 +148,12 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
                               "or give a path to a .toml file")
         text = resource.read_text(encoding="utf-8")
         source, stem, folder = f"preset {name_or_path!r}", name_or_path, None
-    if source in chain:
+        key = source
+    if key in chain:
         raise PresetError(f"{source}: 'base' loops back to itself ({' -> '.join(chain)})")
+    if len(chain) >= PRESET_BASES_MAX:
+        raise PresetError(f"{source}: more than {PRESET_BASES_MAX} bases deep "
+                          f"({chain[0]} -> ... -> {chain[-1]})")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
@@ -155,7 +165,7 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
         return data, source
     data.setdefault("description", f"{base} with changes")  # not the base's own words
     try:
-        base_data, _ = _read(base, folder, (*chain, source))
+        base_data, _ = _read(base, folder, (*chain, key))
     except PresetError as error:
         if str(error).startswith(source):  # already names this file (a loop)
             raise

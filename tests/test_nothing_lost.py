@@ -19,7 +19,13 @@ from PIL import Image
 from kbbatch import batch
 from kbbatch.batch import default_jobs, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
-from kbbatch.images import OLD_PLAN_SHEET_REASON, UNREAD_FORMAT_REASON, ImageReadError, read_image
+from kbbatch.images import (
+    OLD_PLAN_SHEET_REASON,
+    UNREAD_FORMAT_REASON,
+    ImageReadError,
+    read_image,
+    scan_folder,
+)
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
 from kbbatch.pipeline import ClipOptions
 
@@ -461,7 +467,7 @@ def test_plan_beside_the_photos_adds_no_photo_and_survives_a_name_that_is_not_ut
     results = plan_folder(folder, manifest, quick_preset, FAST, False)
     assert [r.status for r in results] == ["done", "done"]
     assert odd.name in json.loads(manifest.read_text())["images"]
-    assert sorted(p.name for p in batch.list_images(folder)) == sorted([odd.name, "b.jpg"])
+    assert sorted(p.name for p in scan_folder(folder).photos) == sorted([odd.name, "b.jpg"])
 
 
 # --- 10: truncated clips, links, subfolders, empty folders, logs -----------------------------

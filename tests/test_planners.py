@@ -443,3 +443,18 @@ def test_plan_in_a_folder_whose_name_is_not_utf8_prints_a_command_that_works(tmp
     assert run.returncode == 0, run.stderr[-2000:]
     assert (folder / "m.json").is_file() and (folder / "m-previews" / "a.jpg").is_file()
     assert b"--manifest '" + os.fsencode(folder / "m.json") + b"'" in run.stdout
+
+
+def test_plan_on_a_folder_without_photos_says_so_and_writes_nothing(tmp_path):
+    """It wrote `{"images": {}}` and a render command, and exited 0; the batch says exit 3."""
+    from click.testing import CliRunner
+
+    from kbbatch.cli import EXIT_NOTHING_TO_DO, main
+
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "IMG_1.HEIC").write_bytes(b"\0\0\0\x18ftypheic")
+    result = CliRunner().invoke(main, ["plan", str(tmp_path / "photos"), "-o",
+                                       str(tmp_path / "m.json")])
+    assert result.exit_code == EXIT_NOTHING_TO_DO, result.output
+    assert "no photos here" in result.output and "IMG_1.HEIC" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]

@@ -207,3 +207,18 @@ def test_a_preset_with_several_bad_settings_names_them_all(tmp_path):
     message = str(caught.value)
     assert "setting 'width_px': 1921 is not a multiple of 2" in message, message
     assert "setting 'height_px': 1081 is not a multiple of 2" in message, message
+
+
+def test_a_base_loop_through_dot_dot_and_a_long_chain_are_refused_by_name(tmp_path):
+    """`base = "../pre/a.toml"` inside pre/a.toml grew the path until a traceback (file name
+    too long); a chain of 1,200 bases overflowed the stack."""
+    (tmp_path / "pre").mkdir()
+    (tmp_path / "pre" / "a.toml").write_text('base = "../pre/a.toml"\n')
+    with pytest.raises(PresetError, match="loops back to itself"):
+        load_preset(str(tmp_path / "pre" / "a.toml"))
+    for index in range(40):
+        (tmp_path / f"c{index}.toml").write_text(f'base = "c{index + 1}.toml"\n')
+    (tmp_path / "c40.toml").write_text('base = "preview"\n')
+    with pytest.raises(PresetError, match="more than 16 bases deep"):
+        load_preset(str(tmp_path / "c0.toml"))
+    assert load_preset(str(tmp_path / "c30.toml")).width_px == 640  # ten deep: fine
