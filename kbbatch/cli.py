@@ -458,8 +458,9 @@ def models() -> None:
 @models.command("list")
 def models_list() -> None:
     """Registered models, their licence and whether each is cached."""
-    click.echo(f"cache: {model_registry.models_dir()}")
     try:
+        model_registry.check_models_dir()  # a file there: refused, as every command does
+        click.echo(f"cache: {model_registry.models_dir()}")
         provider = model_registry.execution_provider()
     except model_registry.ModelError as error:
         raise click.ClickException(str(error)) from error

@@ -180,12 +180,9 @@ def session_threads() -> int:
     return max(1, usable_cores() // _jobs_sharing_cores)
 
 
-def check_cache() -> None:
-    """Raise ModelError, naming the file, when a cached model cannot be used (cache_problem),
-    or when $KBBATCH_PROVIDER names a provider this onnxruntime lacks. Checked once at start:
-    found at each photo instead, the daemon filed every good photo as failed for a damaged
-    download. A $KBBATCH_MODELS that is a file is refused; one that does not exist (a typo?)
-    is said, as the run then has no networks."""
+def check_models_dir() -> None:
+    """A $KBBATCH_MODELS that is a file is refused; one that does not exist (a typo?) is said,
+    as the run then has no networks."""
     folder = models_dir()
     if os.environ.get(MODELS_ENV):
         if folder.exists() and not folder.is_dir():
@@ -193,6 +190,14 @@ def check_cache() -> None:
         if not folder.exists():
             log.warning("%s=%s: no such folder; running without any network", MODELS_ENV,
                         folder)
+
+
+def check_cache() -> None:
+    """Raise ModelError, naming the file, when a cached model cannot be used (cache_problem),
+    or when $KBBATCH_PROVIDER names a provider this onnxruntime lacks. Checked once at start:
+    found at each photo instead, the daemon filed every good photo as failed for a damaged
+    download. The folder itself as check_models_dir."""
+    check_models_dir()
     cached = [(spec, cached_path(spec.name)) for spec in REGISTRY.values()]
     cached = [(spec, path) for spec, path in cached if path is not None]
     if cached:

@@ -235,6 +235,8 @@ def test_a_models_folder_that_is_a_file_or_missing_is_said(tmp_path, monkeypatch
     pulled = CliRunner().invoke(main, ["models", "pull", "yolox-nano"])
     assert pulled.exit_code == 1 and "afile: the model cache cannot be made there" in \
         pulled.output and "Traceback" not in pulled.output
+    listed = CliRunner().invoke(main, ["models", "list"])  # it listed all as missing, status 0
+    assert listed.exit_code == 1 and "afile: a file, not a folder of models" in listed.output
     monkeypatch.setenv(models.MODELS_ENV, str(tmp_path / "modles"))  # a typo
     models.check_cache()
     assert "modles: no such folder; running without any network" in caplog.text
