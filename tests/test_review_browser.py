@@ -225,3 +225,33 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
     assert (out / (Path(names[1]).stem + ".mp4")).is_file()
     assert not (out / (Path(names[2]).stem + ".mp4")).exists()
     assert "1 photo(s) excluded" in completed.stdout
+
+
+GRID_LOADED = """[...document.querySelectorAll('#grid figure img')]
+  .filter((img) => img.complete && img.naturalWidth > 0).length"""
+
+
+def test_a_photo_name_that_is_not_utf8_shows_with_the_others(tmp_path):
+    """Its stray byte reached the page as a lone surrogate, encodeURIComponent threw, and no
+    photo showed ("cannot load: URI malformed"); the server did not find it either."""
+    from kbbatch.images import write_image
+
+    from .conftest import textured_image
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    odd = os.fsdecode(b"0caf\xe9.jpg")  # sorts first: it broke the whole list
+    for seed, name in enumerate((odd, "b.jpg")):
+        write_image(folder / name, textured_image(180, 320, seed))
+    preset = with_overrides(load_preset("preview"), duration_s=DURATION_S, fps=FPS)
+    driver = browser()
+    try:
+        with running_server(folder, tmp_path / "m.json", preset, ClipOptions(threads=2)) as served:
+            assert served.get("/api/photos/0caf%E9.jpg/image").status == 200
+            driver.get(served.url)
+            served.wait_planned()
+            assert wait_for(driver, f"return {GRID_LOADED} === 2", 60)
+            assert "cannot load" not in driver.execute_script(
+                "return document.getElementById('progress-text').textContent")
+    finally:
+        driver.quit()

@@ -14,6 +14,7 @@ import hashlib
 import ipaddress
 import json
 import logging
+import os
 import secrets
 import shlex
 import tempfile
@@ -451,6 +452,17 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def _name_as_sent(name: str) -> str:
+    """The photo name in /api/photos/<name>/..., from the request's own bytes: Flask decodes
+    the path as UTF-8 and replaces what is not, so a name that is not UTF-8 (its bytes sent
+    percent-encoded as they are) was never found. The server keeps the raw request path."""
+    from urllib.parse import unquote_to_bytes
+
+    raw_uri = request.environ.get("RAW_URI") or request.environ.get("REQUEST_URI") or ""
+    raw = unquote_to_bytes(raw_uri.split("?", 1)[0]).split(b"/")
+    return os.fsdecode(raw[3]) if len(raw) == 5 and raw[1:3] == [b"api", b"photos"] else name
+
+
 def _host_name(host_header: str | None) -> str:
     """'127.0.0.1:8765' -> '127.0.0.1', '[::1]:8765' -> '[::1]'."""
     host = host_header or ""
@@ -521,7 +533,7 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
 
     def _picture(name: str, kind: str, mimetype: str) -> Response:
         try:
-            return Response(session.picture(name, kind), mimetype=mimetype)
+            return Response(session.picture(_name_as_sent(name), kind), mimetype=mimetype)
         except ImageReadError as error:
             raise RequestError(422, str(error)) from error
 

@@ -26,7 +26,15 @@ async function api(path, body) {
   return data;
 }
 
-const imageUrl = (name, kind = 'image') => `/api/photos/${encodeURIComponent(name)}/${kind}`;
+// A photo's name as its bytes in a URL: a file name that is not UTF-8 reaches the page with
+// lone surrogates for its stray bytes (Python's surrogateescape), which encodeURIComponent
+// refuses (URIError), and the whole photo list failed to show.
+const urlName = (name) => Array.from(name, (ch) => {
+  const code = ch.codePointAt(0);
+  return code >= 0xDC80 && code <= 0xDCFF
+    ? `%${(code - 0xDC00).toString(16).toUpperCase().padStart(2, '0')}` : encodeURIComponent(ch);
+}).join('');
+const imageUrl = (name, kind = 'image') => `/api/photos/${urlName(name)}/${kind}`;
 const photo = (name) => state.photos.find((p) => p.name === name);
 const clone = (value) => JSON.parse(JSON.stringify(value));
 
