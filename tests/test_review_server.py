@@ -115,6 +115,24 @@ def test_photo_and_depth_pictures_at_the_working_size(served):
     assert depth[-20:].mean() > depth[:20].mean() + 20  # ramp: the bottom is nearer, brighter
 
 
+def test_the_depth_picture_follows_a_depth_map_put_beside_the_photo(folder, manifest, preset):
+    """It was cached by the photo's bytes alone: the old depth showed until a restart."""
+    options = ClipOptions(depth=DepthOptions(backend="auto", adjust=False), threads=1)
+    with running_server(folder, manifest, preset, options) as served:
+        def depth() -> np.ndarray:
+            reply = served.get("/api/photos/tall.png/depth")
+            assert reply.status == 200, reply.body
+            return cv2.imdecode(np.frombuffer(reply.body, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+        before = depth()
+        assert before[-20:].mean() > before[:20].mean() + 20  # the bottom nearer, brighter
+        height, width = 300, 200
+        nearer_left = np.tile(np.linspace(60000, 1000, width), (height, 1)).astype(np.uint16)
+        cv2.imwrite(str(folder / "tall.disparity.png"), nearer_left)
+        after = depth()
+        assert after[:, :20].mean() > after[:, -20:].mean() + 20, "still the old depth"
+
+
 def test_preview_is_rendered_small_once_and_cached(served):
     reply = served.post("/api/preview", {"name": "wide.png", "entry": EDITED})
     assert reply.status == 200, reply.body

@@ -354,7 +354,12 @@ class ReviewSession:
     def picture(self, name: str, kind: str) -> bytes:
         """The photo ('image', JPEG) or its depth map ('depth', PNG) at the working size."""
         state = self._photo(name)
-        key = (name, kind, self._file_hash(state.path))
+        if kind == "image":
+            key = (name, kind, self._file_hash(state.path))
+        else:  # the depth's own inputs: a map saved in the entry, or put beside the photo,
+            # showed the old depth until a restart (the plan had followed it)
+            _, options = self._settings(name, self.entries.get(name))
+            key = (name, kind, self._inputs(state.path, options))
         with self._lock:
             if key in self._images:
                 self._images.move_to_end(key)
