@@ -374,7 +374,7 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         server = ReviewServer(session, host, port)
     except OSError as error:
         raise click.ClickException(f"cannot listen on {host}:{port} ({error.strerror or error});"
-                                   " choose another --port") from error
+                                   " choose another --host or --port") from error
 
     def ready(url: str) -> None:
         click.echo(f"kbbatch review: {len(session.photos)} photo(s) of {session.folder} at {url}"

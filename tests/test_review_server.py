@@ -419,3 +419,12 @@ def test_an_ipv6_loopback_host_keeps_the_rebinding_guard_and_a_valid_url(folder,
             TOKEN_HEADER: served.session.token})
         assert saved.status == 403
         assert served.get("/api/photos").status == 200  # http.client names [::1]:PORT
+
+
+def test_a_host_that_is_no_address_here_is_refused_with_its_name(folder, tmp_path):
+    """werkzeug printed a bare "Name or service not known" and exited."""
+    result = CliRunner().invoke(main, ["review", str(folder), "--manifest",
+                                       str(tmp_path / "m.json"), "--host", "nowhere.invalid"])
+    assert result.exit_code == 1, result.output
+    assert "cannot listen on nowhere.invalid:" in result.output
+    assert "nowhere.invalid is no address of this machine" in result.output

@@ -17,6 +17,7 @@ import logging
 import os
 import secrets
 import shlex
+import socket
 import tempfile
 import threading
 from collections import OrderedDict
@@ -585,6 +586,10 @@ class ReviewServer:
         # A loopback address in any spelling (::1 turned the DNS-rebinding guard off) serves
         # only requests that name a local host; another address is exposed on purpose.
         hosts = (*LOCAL_HOSTS, in_url) if is_loopback(bare) else None
+        try:  # werkzeug prints a bare "Name or service not known" and exits
+            socket.getaddrinfo(bare, port)
+        except socket.gaierror as error:
+            raise OSError(f"{host} is no address of this machine ({error.strerror})") from error
         self.session = session
         self.server = make_server(bare, port, create_app(session, hosts), threaded=True)
         self.port = self.server.server_port
