@@ -802,7 +802,7 @@ class OnnxInpainter:
     def __call__(self, image: np.ndarray, mask: np.ndarray) -> np.ndarray:
         from kbbatch import models
 
-        size = models.fixed_input_size(self.session) or (self.spec.input_size,) * 2
+        size = models.session_input_size(self.session, (self.spec.input_size,) * 2)
         height, width = image.shape[:2]
         small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         small_mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST) > 0

@@ -295,13 +295,16 @@ def _shapes(shapes, joiner: str = ", ") -> str:
                                      for d in shape) + ")" for shape in shapes) or "nothing"
 
 
-def fixed_input_size(created) -> tuple[int, int] | None:
-    """(width, height) a session's first (NCHW) input is fixed to, or None where it is free:
-    an export at a fixed size takes only that size."""
+def session_input_size(created, free_size: tuple[int, int]) -> tuple[int, int]:
+    """(width, height) to feed a session's first (NCHW) input: a dimension its export fixes
+    takes that size, a free one free_size's (an export with the height alone fixed passed the
+    start-up check, then failed at every photo)."""
     height, width = list(created.get_inputs()[0].shape)[2:4]
-    if isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0:
-        return width, height
-    return None
+
+    def fixed(value: object) -> int | None:
+        return value if isinstance(value, int) and value > 0 else None
+
+    return fixed(width) or free_size[0], fixed(height) or free_size[1]
 
 
 @functools.cache

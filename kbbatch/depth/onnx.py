@@ -41,8 +41,8 @@ class OnnxDepth:
                   ) -> DepthResult:
         session = models.load(self.spec.name)
         height, width = image.shape[:2]
-        size = models.fixed_input_size(session) or models.input_size_for(self.spec, width,
-                                                                           height)
+        size = models.session_input_size(session, models.input_size_for(self.spec, width,
+                                                                          height))
         batch = models.prepare_input(self.spec, image, size)
         output = session.run(None, {session.get_inputs()[0].name: batch})[0]
         return DepthResult(relative_disparity(output), self.name, self.spec.name)
