@@ -69,3 +69,17 @@ def textured_image(height: int, width: int, seed: int = 0) -> np.ndarray:
 def isolated_depth_cache(tmp_path_factory, monkeypatch):
     """Tests never read or write the user's depth cache."""
     monkeypatch.setenv("KBBATCH_CACHE", str(tmp_path_factory.mktemp("depth-cache")))
+
+
+def run_in_child(script: str, folder: Path) -> str:
+    """Run a Python script in a fresh process with folder's bytes as sys.argv[1] (a name that
+    is not UTF-8 reaches it as the OS gives it) and return its stdout; it must succeed."""
+    import os
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", script, os.fsencode(folder)],
+                          cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout

@@ -1,7 +1,5 @@
 import os
-import subprocess
 import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,7 +8,7 @@ from PIL import Image
 
 from kbbatch.depth import DepthError, estimate_disparity
 
-from .conftest import textured_image
+from .conftest import run_in_child, textured_image
 
 
 def test_user_depth_png_beside_the_photo_is_honoured(tmp_path):
@@ -92,7 +90,6 @@ def test_openexr_without_a_depth_channel_or_corrupt_gets_a_clear_error(tmp_path)
 
 
 def test_openexr_without_its_package_says_how_to_install_it(tmp_path, monkeypatch):
-    import sys
 
     write_exr(tmp_path / "c.depth.exr", {"Z": np.ones((40, 60), np.float32)})
     monkeypatch.setitem(sys.modules, "OpenEXR", None)  # as on a machine without the extra
@@ -177,11 +174,7 @@ def test_a_map_beside_a_photo_in_a_folder_whose_name_is_not_utf8_is_read(tmp_pat
         "print(result.backend, round(float(result.disparity[40, 70] / "
         "result.disparity[90, 5]), 3))\n"
     )
-    done = subprocess.run([sys.executable, "-c", script, os.fsencode(folder)],
-                          cwd=Path(__file__).resolve().parents[1], capture_output=True,
-                          text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.split() == ["file", "4.0"]
+    assert run_in_child(script, folder).split() == ["file", "4.0"]
 
 
 def test_a_map_kbbatch_saved_from_another_photo_is_not_taken_for_this_ones(

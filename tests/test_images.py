@@ -1,7 +1,4 @@
 import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +13,7 @@ from kbbatch.images import (
     read_image,
 )
 
-from .conftest import textured_image
+from .conftest import run_in_child, textured_image
 
 
 def save(path, array, mode=None, **kwargs):
@@ -95,10 +92,7 @@ def test_images_are_written_and_read_under_a_folder_name_that_is_not_utf8(tmp_pa
         "write_image(folder / 'own.png', picture, own=True,\n"
         "            text={'Comment': 'kept'})\n"
     )
-    done = subprocess.run([sys.executable, "-c", script, os.fsencode(folder)],
-                          cwd=Path(__file__).resolve().parents[1], capture_output=True,
-                          text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
+    run_in_child(script, folder)
     picture = (np.arange(30 * 40 * 3) % 251).astype(np.uint8).reshape(30, 40, 3)
     assert np.array_equal(read_image(folder / "plain.png"), picture)
     assert read_image(folder / "plain.jpg").shape == (30, 40, 3)

@@ -283,6 +283,20 @@ def start_batch(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def act_while_encoding(folder: Path, out: Path, duration_s: float, act) -> tuple[int, str]:
+    """Start a batch of --duration clips, act(process) once one is being encoded, and give
+    the batch's exit status and stderr."""
+    process = start_batch(folder, out, "--duration", str(duration_s), "--fps", "25")
+    try:
+        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
+        act(process)
+        _, stderr = process.communicate(timeout=300)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    return process.returncode, stderr
+
+
 def slow_folder(tmp_path: Path) -> Path:
     folder = tmp_path / "in"
     for index in range(2):
@@ -320,15 +334,9 @@ def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
 @pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
 def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
     folder, out = slow_folder(tmp_path), tmp_path / "out"
-    process = start_batch(folder, out, "--duration", "6", "--fps", "25")
-    try:
-        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
-        process.send_signal(stop_signal)
-        _, stderr = process.communicate(timeout=300)
-    finally:
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == 130, stderr
+    returncode, stderr = act_while_encoding(folder, out, 6,
+                                            lambda batch: batch.send_signal(stop_signal))
+    assert returncode == 130, stderr
     assert "Traceback" not in stderr and "run again" in stderr, stderr
     assert not list(out.glob(".*part*")), "a partial clip was left"
     clips = visible_clips(out)
@@ -602,14 +610,7 @@ def test_an_output_folder_removed_mid_run_stops_the_run_and_is_not_made_again(tm
     """It was made again by the next clip, its journal lost: the re-run then made every clip
     a second time under content names, and a second run could take the new folder's lock."""
     folder, out = slow_folder(tmp_path), tmp_path / "out"
-    process = start_batch(folder, out, "--duration", "4", "--fps", "25")
-    try:
-        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
-        shutil.rmtree(out)
-        _, stderr = process.communicate(timeout=300)
-    finally:
-        if process.poll() is None:
-            process.kill()
-    assert process.returncode == 1, stderr
+    returncode, stderr = act_while_encoding(folder, out, 4, lambda _: shutil.rmtree(out))
+    assert returncode == 1, stderr
     assert f"{out}: removed or renamed during the run; stopped" in stderr
     assert not out.exists()
