@@ -428,3 +428,18 @@ def test_a_host_that_is_no_address_here_is_refused_with_its_name(folder, tmp_pat
     assert result.exit_code == 1, result.output
     assert "cannot listen on nowhere.invalid:" in result.output
     assert "nowhere.invalid is no address of this machine" in result.output
+
+
+def test_a_saved_depth_file_must_be_a_depth_map(served, folder, manifest, tmp_path):
+    """`{"depth": "/etc/passwd"}` was saved; the preview and the render then failed on it."""
+    before = manifest.read_text()
+    (tmp_path / "notes.txt").write_text("not a map")
+    reply = served.post("/api/save", {"entries": {"wide.png": {"depth": str(tmp_path /
+                                                                         "notes.txt")}}})
+    assert reply.status == 400 and "not a readable image" in reply.json()["error"], reply.body
+    assert manifest.read_text() == before
+    cv2.imwrite(str(tmp_path / "map.png"), np.tile(np.arange(360, dtype=np.uint16)[None] * 100,
+                                                   (240, 1)))
+    good = served.post("/api/save", {"entries": {"wide.png": {"depth": str(tmp_path /
+                                                                        "map.png")}}})
+    assert good.status == 200, good.body

@@ -35,6 +35,7 @@ from werkzeug.serving import make_server
 from kbbatch.camera import working_size
 from kbbatch.depth import DepthError
 from kbbatch.depth import cache as depth_cache
+from kbbatch.depth.file import load_map
 from kbbatch.fingerprint import clip_inputs, file_sha256
 from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
 from kbbatch.manifest import (
@@ -191,7 +192,10 @@ class ReviewSession:
                 if changes[name] is not None:
                     self._settings(name, changes[name])
                     self._checked_plan(manifest.entries[name])
-        except ManifestError as error:
+                    depth_file = manifest.entries[name].depth_file
+                    if depth_file is not None:  # /etc/passwd was saved, then failed the render
+                        load_map(depth_file)
+        except (ManifestError, DepthError) as error:
             raise RequestError(400, str(error)) from error
         try:
             write_manifest(self.manifest_path, merged)
