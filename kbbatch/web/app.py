@@ -238,6 +238,8 @@ class ReviewSession:
         depth map edited while the page is open gives a new plan and preview."""
         try:
             return clip_inputs(path, self._file_hash(path), options.depth, None).digest
+        except FileNotFoundError:
+            raise  # removed while the page is open: the app says so (404)
         except OSError as error:
             raise RequestError(422, f"{error.filename or path}: cannot be read "
                                     f"({error.strerror or error})") from error
