@@ -394,10 +394,16 @@ def _merged_plans(manifest_path: Path, planned_entries: dict[str, dict], replan:
         entry = current.entry(name) if current else None
         if _keeps_its_entry(entry, replan):
             continue  # crops or an exclude saved meanwhile: the user's
-        own = {key: value for key, value in (entry.data if entry else {}).items()
-               if key not in PLANNED_FIELDS}
-        entries[entry.image if entry else name] = planned | own
+        entries[entry.image if entry else name] = _with_own_fields(planned, entry)
     return entries
+
+
+def _with_own_fields(planned: dict, entry: ManifestEntry | None) -> dict:
+    """A photo's new plan with the fields of its entry that planning does not set (its
+    preset, duration, depth file)."""
+    own = {key: value for key, value in (entry.data if entry else {}).items()
+           if key not in PLANNED_FIELDS}
+    return planned | own
 
 
 def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: ClipOptions,
@@ -441,13 +447,12 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
                                                                        photo_preset))
             planned = plan_to_entry(plan, photo.shape[1], working.shape[1])
             planned_entries[source.name] = planned
-            own = {key: value for key, value in (entry.data if entry else {}).items()
-                   if key not in PLANNED_FIELDS}
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"
             write_image(preview_dir / preview_name, preview)
             previews.append(preview)
-            results.append(PlanResult(str(source), "done", entry=planned | own,
+            results.append(PlanResult(str(source), "done",
+                                      entry=_with_own_fields(planned, entry),
                                       seconds=time.perf_counter() - started))
         except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
             results.append(PlanResult(str(source), "failed", error=str(error)))

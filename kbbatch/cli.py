@@ -47,8 +47,12 @@ forked until the machine stalled, and left an orphan hung after SIGTERM; --threa
 frames per thread in memory (35 MB each at 1080p, 140 MB at 4K)."""
 
 
+def _most_per_machine() -> int:
+    return JOBS_PER_CORE_MAX * (os.cpu_count() or 1)
+
+
 def _threads_cap(context: click.Context, param: click.Parameter, value: int) -> int:
-    most = JOBS_PER_CORE_MAX * (os.cpu_count() or 1)
+    most = _most_per_machine()
     if value > most:
         raise click.BadParameter(f"{value}: at most {most} here ({JOBS_PER_CORE_MAX} per core)",
                                  param=param)
@@ -530,7 +534,7 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     if inbox.resolve() == outbox.resolve():  # its lock is the output folder's: a busy error
         raise click.UsageError(f"{outbox}: --out must be a folder other than the inbox")
-    local_jobs_max = JOBS_PER_CORE_MAX * (os.cpu_count() or 1)
+    local_jobs_max = _most_per_machine()
     if jobs is not None and jobs > local_jobs_max and shared.get("executor_name") != "ray":
         raise click.UsageError(f"--jobs {jobs}: at most {local_jobs_max} worker processes "
                                f"here ({JOBS_PER_CORE_MAX} per core); each one renders a photo")

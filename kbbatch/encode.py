@@ -190,7 +190,7 @@ def with_colour_tags(stream, pix_fmt: str):
 
 
 def is_yuv(pix_fmt: str) -> bool:
-    return pix_fmt.startswith(("yuv", "yuvj", "nv", "p010", "p016"))
+    return pix_fmt.startswith(("yuv", "nv", "p010", "p016"))  # yuvj* too
 
 
 def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[str]:

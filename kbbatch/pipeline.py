@@ -44,7 +44,6 @@ from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import EncoderStoppedError, encode_frames, palindrome_order
 from kbbatch.images import (
-    DISK_FULL_ERRNOS,
     ImageReadError,
     atomic_output,
     disk_full_message,
@@ -410,7 +409,7 @@ def frame_store(shape: tuple[int, ...], cleanup: contextlib.ExitStack) -> np.nda
         with path.open("r+b") as handle:
             os.posix_fallocate(handle.fileno(), 0, path.stat().st_size)
     except OSError as error:
-        if error.errno not in DISK_FULL_ERRNOS:
+        if not is_disk_full(error):
             raise
         raise OSError(error.errno, f"its {math.prod(shape) / 2**30:.1f} GB of frames need "
                       "room in the temporary folder: free some, or set TMPDIR to a folder on a "

@@ -394,9 +394,10 @@ class RayExecutor:
             start_ray(ray, self.address)
             for sig, handler in handlers.items():
                 signal.signal(sig, handler)
-        joined = self.address or os.environ.get("RAY_ADDRESS")
-        check_resources(ray, self.cpus_per_clip, self.gpus_per_clip,
-                        node_wait_s() if joined else 0.0)
+            # once, when Ray is started or joined (the command does that before the run)
+            joined = self.address or os.environ.get("RAY_ADDRESS")
+            check_resources(ray, self.cpus_per_clip, self.gpus_per_clip,
+                            node_wait_s() if joined else 0.0)
         remote_clip = ray.remote(
             num_cpus=self.cpus_per_clip, num_gpus=self.gpus_per_clip,
             max_retries=SYSTEM_FAILURE_RETRIES, retry_exceptions=False,
