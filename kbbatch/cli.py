@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import sys
+import unicodedata
 from dataclasses import fields
 from pathlib import Path
 
@@ -85,6 +87,31 @@ class NamedPath(click.Path):
             self.fail("an empty path (an unset variable in a script?); name a folder or file",
                       param, ctx)
         return super().convert(value, param, ctx)
+
+
+TIMED_LOG_FORMAT = "%(asctime)s %(levelname)s %(message)s"
+"""The log of the long-running commands (review, watch): one record per line, timestamped."""
+
+
+def one_line(text: str) -> str:
+    """Control characters shown escaped: a newline in a file name once split one log record
+    into two lines (a script reading the log line by line saw half a name), and an escape
+    sequence in a name could drive the terminal."""
+    return "".join(ascii(char)[1:-1] if unicodedata.category(char) == "Cc" else char
+                   for char in text)
+
+
+class OneLineFormatter(logging.Formatter):
+    def formatMessage(self, record: logging.LogRecord) -> str:  # noqa: N802 (logging's name)
+        return one_line(super().formatMessage(record))
+
+
+def _log_to_terminal(level: int, line_format: str = "%(message)s") -> None:
+    """Warnings (and, for the daemon and review, progress) to stderr, one line per record.
+    A no-op where logging is already set up (a host program, pytest)."""
+    handler = logging.StreamHandler()
+    handler.setFormatter(OneLineFormatter(line_format))
+    logging.basicConfig(level=level, handlers=[handler])
 
 
 @click.group(cls=DefaultCommandGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -227,6 +254,7 @@ executor_options = _shared(
 def render(folder: Path, output: Path | None, manifest_path: Path | None, save_depth: bool,
            threads: int, force: bool, fail_fast: bool, quiet: bool, **shared) -> None:
     """Render every photo in FOLDER to a palindromic 3D Ken Burns clip."""
+    _log_to_terminal(logging.WARNING)
     preset = _preset(shared)
     options = _clip_options(shared, threads=threads, save_depth=save_depth)
     output = output or folder / "kenburns"
@@ -309,6 +337,7 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
     Edit the crops, then render with `kbbatch FOLDER --manifest MANIFEST`. Into an existing
     manifest, entries with crops (edited by hand, or in `kbbatch review`) are kept.
     """
+    _log_to_terminal(logging.WARNING)
     import shlex
 
     render_options = _render_options(click.get_current_context())
@@ -339,7 +368,7 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
         *render_options])))
     failed = [r for r in results if r.status == "failed"]
     for result in failed:
-        click.echo(f"FAILED {result.error}", err=True)
+        click.echo(one_line(f"FAILED {result.error}"), err=True)
     sys.exit(1 if failed else 0)
 
 
@@ -361,11 +390,9 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
 
     Render the saved manifest with `kbbatch FOLDER --manifest MANIFEST`.
     """
-    import logging
-
     from kbbatch.web.app import ReviewServer, ReviewSession
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    _log_to_terminal(logging.INFO, TIMED_LOG_FORMAT)
     logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
     render_options = _render_options(click.get_current_context())
     preset = _preset(shared)
@@ -434,11 +461,11 @@ def _print_summary(report: RunReport) -> None:
         click.echo(f"{mean:.1f} s per photo on average")
     for result in report.results:
         if result.note:
-            click.echo(f"NOTE {result.note}", err=True)
+            click.echo(one_line(f"NOTE {result.note}"), err=True)
     for note in report.notes:
-        click.echo(f"NOTE {note}", err=True)
+        click.echo(one_line(f"NOTE {note}"), err=True)
     for result in report.failed:
-        click.echo(f"FAILED {result.error}", err=True)
+        click.echo(one_line(f"FAILED {result.error}"), err=True)
 
 
 @main.command()
@@ -526,12 +553,10 @@ def _finite_seconds(context: click.Context, param: click.Parameter, value: float
 def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: bool, jobs: int | None,
           poll: bool, settle_s: float, keep_sources: bool, **shared) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
-    import logging
-
     from kbbatch.watch import WatchSettings
     from kbbatch.watch import watch as run_daemon
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    _log_to_terminal(logging.INFO, TIMED_LOG_FORMAT)
     if inbox.resolve() == outbox.resolve():  # its lock is the output folder's: a busy error
         raise click.UsageError(f"{outbox}: --out must be a folder other than the inbox")
     local_jobs_max = _most_per_machine()
@@ -565,4 +590,4 @@ def status(outbox: Path) -> None:
     except JournalError as error:  # damaged: said in one line, as render and watch say it
         raise click.ClickException(str(error)) from error
     for line in lines:
-        click.echo(line)
+        click.echo(one_line(line))

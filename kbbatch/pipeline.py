@@ -211,6 +211,17 @@ def resize_to(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(image, (width, height), interpolation=interpolation)
 
 
+STILL_TOLERANCE_PX = 0.5
+"""Crops whose every edge moves less than this (working pixels) make no visible move."""
+
+
+def _is_still(plan: Plan) -> bool:
+    start, end = plan.start, plan.end
+    return all(abs(a - b) < STILL_TOLERANCE_PX for a, b in (
+        (start.left_px, end.left_px), (start.right_px, end.right_px),
+        (start.top_px, end.top_px), (start.bottom_px, end.bottom_px)))
+
+
 def prepare_scene(
     photo: np.ndarray,
     photo_path: Path | None,
@@ -230,6 +241,10 @@ def prepare_scene(
     clock = time.perf_counter()
     if plan is None:
         plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
+    if _is_still(plan):
+        log.warning("%s: the start and end crops are the same, so the clip is a still picture "
+                    "(give the preset a zoom above 1, or the manifest two different crops)",
+                    photo_path or "photo")
     if not plan.parallax:
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))

@@ -48,6 +48,7 @@ from kbbatch.pipeline import (
     remove_stale_scratch,
 )
 from kbbatch.presets import Preset
+from kbbatch.settings import env_number
 
 log = logging.getLogger(__name__)
 
@@ -80,16 +81,10 @@ Ray itself waits for one without end, and says nothing."""
 
 
 def node_wait_s() -> float:
-    text = os.environ.get(RAY_NODE_WAIT_ENV)
-    if not text:
-        return RAY_NODE_WAIT_S
     try:
-        seconds = float(text)
-    except ValueError:
-        seconds = float("nan")
-    if not 0 <= seconds < float("inf"):
-        raise RayUnavailableError(f"{RAY_NODE_WAIT_ENV}={text!r} is not a number of seconds")
-    return seconds
+        return env_number(RAY_NODE_WAIT_ENV, RAY_NODE_WAIT_S)
+    except ValueError as error:
+        raise RayUnavailableError(f"{error} (seconds to wait for the cluster's nodes)") from None
 
 
 class RayUnavailableError(RuntimeError):

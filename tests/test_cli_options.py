@@ -231,3 +231,28 @@ def test_status_names_a_failed_photo_once(tmp_path):
     result = CliRunner().invoke(cli.main, ["status", str(tmp_path / "out")])
     assert f"FAILED {photo}: EncodeError: ffmpeg failed" in result.output, result.output
     assert result.output.count(str(photo)) == 1
+
+
+def test_a_control_character_in_a_name_cannot_split_a_line_or_drive_the_terminal(tmp_path):
+    """A newline in a photo's name once split its FAILED line (and its log record) in two."""
+    import logging
+    import subprocess
+    import sys
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "two\nlines.jpg").write_bytes(b"\xff\xd8 not a jpeg")
+    (folder / "red\x1b[31m.jpg").write_bytes(b"\xff\xd8 not a jpeg")
+    run = subprocess.run([sys.executable, "-m", "kbbatch", str(folder), "-o", str(tmp_path / "out"),
+                          "--preset", "preview", "--quiet"], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 1, run.stderr
+    failed = [line for line in run.stderr.splitlines() if line.startswith("FAILED")]
+    assert len(failed) == 2, run.stderr
+    assert any("two\\nlines.jpg" in line for line in failed), failed
+    assert any("red\\x1b[31m.jpg" in line for line in failed), failed
+    assert "\x1b" not in run.stderr
+
+    record = logging.LogRecord("kbbatch", logging.WARNING, __file__, 1, "%s: skipped", ("a\nb",),
+                               None)
+    assert cli.OneLineFormatter(cli.TIMED_LOG_FORMAT).format(record).endswith(" a\\nb: skipped")

@@ -183,3 +183,23 @@ def test_a_flat_2d_plan_logs_no_parallax_reduction(caplog):
         prepare_scene(textured_image(180, 320), None, load_preset("preview"),
                       ClipOptions(planner="2d", depth=DepthOptions(backend="ramp")), {})
     assert "parallax reduced" not in caplog.text
+
+
+def test_a_plan_that_does_not_move_says_the_clip_is_a_still(caplog):
+    """Zoom 1.0 with the centre planner made a still clip without a word."""
+    import logging
+
+    from kbbatch.depth import DepthOptions
+    from kbbatch.pipeline import ClipOptions, prepare_scene
+    from kbbatch.presets import load_preset, with_overrides
+
+    from .conftest import textured_image
+
+    still = with_overrides(load_preset("preview"), zoom=1.0)
+    for planner, says in (("center", True), ("auto", False)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            options = ClipOptions(planner=planner, depth=DepthOptions(backend="ramp"))
+            prepared = prepare_scene(textured_image(180, 320), None, still, options, {})
+        assert ("the clip is a still picture" in caplog.text) is says, (planner, caplog.text)
+        assert (prepared.plan.start == prepared.plan.end) is says

@@ -20,6 +20,7 @@ import numpy as np
 
 from kbbatch.depth import DepthResult
 from kbbatch.images import atomic_output
+from kbbatch.settings import env_number
 
 log = logging.getLogger(__name__)
 
@@ -86,17 +87,12 @@ class CacheSettingError(ValueError):
 
 def cache_max_bytes() -> int:
     """The bound on the folder's size, from $KBBATCH_CACHE_MAX_MB or the default."""
-    text = os.environ.get(CACHE_MAX_ENV)
-    if not text:
-        return CACHE_MAX_MB_DEFAULT * 2**20
     try:
-        megabytes = float(text)
-    except ValueError:
-        megabytes = float("nan")
-    if not 0 <= megabytes < float("inf"):  # inf once failed every photo (OverflowError)
+        megabytes = env_number(CACHE_MAX_ENV, CACHE_MAX_MB_DEFAULT)
+    except ValueError as error:
         raise CacheSettingError(
-            f"{CACHE_MAX_ENV}={text!r} is not a size in MB: give a number such as "
-            f"{CACHE_MAX_MB_DEFAULT} (the default), or unset it")
+            f"{CACHE_MAX_ENV}={os.environ[CACHE_MAX_ENV]!r} is not a size in MB: give a number "
+            f"such as {CACHE_MAX_MB_DEFAULT} (the default), or unset it") from error
     return int(megabytes * 2**20)
 
 
