@@ -156,6 +156,51 @@ def test_a_pole_on_a_slanting_wall_keeps_its_parallax():
     assert assess(plain, depth, plan, scene).relief == 1.0
 
 
+def faint_pot(seed: int) -> np.ndarray:
+    """A pale pot on a pale wall, 10 grey levels apart, softly focused and a little noisy."""
+    rng = np.random.default_rng(seed)
+    grey = np.full((H, W), 215.0, np.float32)
+    grey[int(0.1 * H):int(0.95 * H), int(0.6 * W):int(0.75 * W)] += 10.0
+    grey = cv2.GaussianBlur(grey + rng.normal(0.0, 1.0, grey.shape), (0, 0), 1.5)
+    return np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_faint_sides_of_a_pale_pot_are_followed(seed):
+    """The segment detector alone found no line on a white pot's sides against a white wall
+    (photo 15): the no-network ground plane bent the pots' lower halves outward unmeasured."""
+    photo = faint_pot(seed)
+    uprights = [line for line in straight_lines(photo)
+                if abs(line[1, 0] - line[0, 0]) < 0.2 * abs(line[1, 1] - line[0, 1])]
+    assert uprights, "no upright side found"
+    _, depth, scene, plan = pole_scene(ground_plane_disparity(H, W))
+    risk = assess(photo, depth, plan, scene)
+    assert risk.relief < 1.0 and risk.line_bend > LINE_BEND_MAX, risk
+
+
+def test_the_desk_plants_pots_get_less_parallax_without_a_network():
+    """Photo 15 without networks: the pop-up's ground plane runs up the white pots, and their
+    sides (faint, cut short by the pots' rings) must be seen to bend."""
+    from kbbatch.images import read_image
+    from kbbatch.pipeline import working_depth
+    from kbbatch.planners import PlanRequest, get_planner
+    from kbbatch.presets import load_preset
+
+    from .conftest import PHOTOS
+
+    path = PHOTOS / "15_indoor_desk_plants.jpg"
+    if not path.is_file():
+        pytest.skip(f"{path} not found (../shared exists only for developers/CI)")
+    options = ClipOptions(depth=DepthOptions(backend="popup"), cache_depth=False)
+    working, result, depth = working_depth(read_image(path), path, options)
+    assert result.backend == "popup"
+    plan = get_planner("auto").plan(PlanRequest(working, depth, load_preset("slideshow")))
+    risk = assess(working, depth, plan, SceneGeometry(working.shape[1], working.shape[0],
+                                                        nearest_depth(depth)))
+    assert risk.relief < 1.0, risk
+    assert any("upright line tilts" in reason for reason in risk.reasons), risk.reasons
+
+
 def test_the_pieces_of_one_line_join_and_other_lines_do_not():
     """The bars of a lattice tower cut its uprights into pieces: joined, they are one long line."""
     upper = np.array([[100.0, 10.0], [101.0, 100.0]])
