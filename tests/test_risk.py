@@ -178,7 +178,7 @@ def test_the_faint_sides_of_a_pale_pot_are_followed(seed):
     assert risk.relief < 1.0 and risk.line_bend > LINE_BEND_MAX, risk
 
 
-def test_the_desk_plants_pots_get_less_parallax_without_a_network():
+def test_the_desk_plants_pots_get_less_parallax_without_a_network(tmp_path, monkeypatch):
     """Photo 15 without networks: the pop-up's ground plane runs up the white pots, and their
     sides (faint, cut short by the pots' rings) must be seen to bend."""
     from kbbatch.images import read_image
@@ -191,6 +191,7 @@ def test_the_desk_plants_pots_get_less_parallax_without_a_network():
     path = PHOTOS / "15_indoor_desk_plants.jpg"
     if not path.is_file():
         pytest.skip(f"{path} not found (../shared exists only for developers/CI)")
+    monkeypatch.setenv("KBBATCH_MODELS", str(tmp_path))  # no network, even where CI has them
     options = ClipOptions(depth=DepthOptions(backend="popup"), cache_depth=False)
     working, result, depth = working_depth(read_image(path), path, options)
     assert result.backend == "popup"
