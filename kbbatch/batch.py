@@ -278,7 +278,9 @@ def run_folder(
                 journal.finish(Path(job.source), "queued", 0.0, why)
                 results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
         journal.close()
-        report = RunReport(str(folder.absolute()), str(output_folder), preset.name, results,
+        # the folder as it is found again: 'photos/../out' named no folder a user would look in
+        report = RunReport(str(folder.absolute()), str(output_folder.resolve()), preset.name,
+                           results,
                            notes, stop.get("by"), options.device, providers_used())
         if folder_identity(output_folder) != identity:  # not made again: the user's doing
             lock.release()

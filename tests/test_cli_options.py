@@ -182,7 +182,7 @@ def test_a_depth_network_asked_for_and_absent_is_said_once_at_start(
     assert with_file.exit_code == 3 and "no photos here" in with_file.output
 
 
-def test_the_run_report_names_the_photo_folder_by_its_absolute_path(tmp_path, monkeypatch):
+def test_the_run_report_names_the_folders_by_their_absolute_paths(tmp_path, monkeypatch):
     import json
 
     from click.testing import CliRunner
@@ -193,13 +193,15 @@ def test_the_run_report_names_the_photo_folder_by_its_absolute_path(tmp_path, mo
     (tmp_path / "photos").mkdir()
     Image.fromarray(textured_image(180, 320)).save(tmp_path / "photos" / "a.jpg")
     monkeypatch.chdir(tmp_path)
-    result = CliRunner().invoke(cli.main, ["photos", "-o", "out", "--depth", "ramp",
+    result = CliRunner().invoke(cli.main, ["photos", "-o", "photos/../out", "--depth", "ramp",
                                            "--planner", "center", "--preset", "preview",
                                            "--duration", "0.6", "--fps", "10", "--quiet"])
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "out" / "kbbatch-report.json").read_text())
     assert report["folder"] == str(tmp_path / "photos")
+    # the output folder as it is found again, in the report and in the summary
     assert report["output_folder"] == str(tmp_path / "out")
+    assert f"1 clip(s) made in {tmp_path / 'out'}," in result.output
 
 
 def test_render_refuses_more_threads_than_four_per_core(tmp_path):

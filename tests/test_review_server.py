@@ -443,3 +443,17 @@ def test_a_saved_depth_file_must_be_a_depth_map(served, folder, manifest, tmp_pa
     good = served.post("/api/save", {"entries": {"wide.png": {"depth": str(tmp_path /
                                                                         "map.png")}}})
     assert good.status == 200, good.body
+
+
+def test_crops_are_checked_against_a_photo_replaced_while_the_page_is_open(served, folder,
+                                                                          manifest):
+    """The photo's size is read again when its file changes: crops made for the old, larger
+    photo are refused naming it, not saved for a render that refuses them."""
+    served.wait_planned()
+    write_image(folder / "wide.png", textured_image(120, 180, 5))  # half the size
+    reply = served.post("/api/save", {"entries": {"wide.png": EDITED}})
+    assert reply.status == 400, reply.body
+    assert "wide.png" in reply.json()["error"]
+    assert load_manifest(manifest).entry("wide.png") is None  # nothing written
+    photos = {p["name"]: p for p in served.get("/api/photos").json()["photos"]}
+    assert (photos["wide.png"]["width_px"], photos["wide.png"]["height_px"]) == (180, 120)

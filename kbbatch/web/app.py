@@ -256,12 +256,14 @@ class ReviewSession:
             return self._key_locks.setdefault(key, threading.Lock())
 
     def _size(self, name: str) -> tuple[int, int]:
+        """The photo's size now: through its plan, cached by the file's bytes, so a photo
+        replaced while the page is open (a smaller one) is measured again, not trusted from
+        the first look."""
         state = self.photos[name]
-        if state.width_px is None:
-            try:
-                self.auto_plan(name, None)
-            except ImageReadError as error:
-                raise RequestError(422, str(error)) from error
+        try:
+            self.auto_plan(name, None)
+        except ImageReadError as error:
+            raise RequestError(422, str(error)) from error
         return state.width_px, state.height_px
 
     def auto_plan(self, name: str, data: dict[str, Any] | None) -> dict[str, Any]:
