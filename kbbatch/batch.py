@@ -197,6 +197,9 @@ def run_folder(
     scan = replace(scan, photos=[photo for photo in scan.photos if not maps.get(photo)])
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
                if manifest is not None else [])
+    # an excluded photo that is gone was rejected, then deleted: nothing to make, no failure
+    gone_excluded = [name for name in missing if manifest.entries[name].excluded]
+    missing = [name for name in missing if name not in gone_excluded]
     if not scan.photos and not scan.broken_links and not scan.not_files and not missing:
         raise empty_folder_error(folder, scan)
     check_writable(output_folder)
@@ -216,6 +219,8 @@ def run_folder(
     for path in scan.not_files:
         results.append(ClipResult(str(path), None, "failed", 0.0, error=f"{path}: is not a "
                                   "regular file (a named pipe, socket or device); not read"))
+    notes += [f"{manifest.path}: image {name!r} is excluded and not in {folder}; nothing to do"
+              for name in gone_excluded]
     for name in missing:
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "
@@ -224,6 +229,7 @@ def run_folder(
     try:
         remove_partial_clips(output_folder)
         journal = Journal(output_folder)
+        forget_deleted_photos(journal, folder)
     except JournalError as error:
         lock.release()
         raise OutputFolderError(str(error)) from error
@@ -301,6 +307,18 @@ FOLDER_GONE = "the output folder removed or renamed"
 DISK_FULL = "a full output disk"
 
 
+def forget_deleted_photos(journal, folder: Path) -> None:
+    """Unfinished jobs of this folder's photos that were deleted since: nothing is left to
+    make of them, and kept queued they showed in `kbbatch status` for ever. (Another folder's
+    jobs are left alone: its card may only be out of the reader.)"""
+    folder = folder.absolute()
+    for state in ("queued", "running"):
+        for job in journal.jobs(state):
+            source = Path(job.source)
+            if source.parent == folder and not os.path.lexists(source):
+                journal.forget(source)
+
+
 def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,
               options: ClipOptions, entry: ManifestEntry | None, force: bool
               ) -> ClipJob | ClipResult:
@@ -318,6 +336,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
+        kept = journal.kept_name(source, content, preferred, output_folder, options.save_depth)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
@@ -325,7 +344,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         journal.start(source, fingerprint, settings, name, content)
     except JournalError as error:
         return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
-    return ClipJob(source, output, entry, preferred)
+    return ClipJob(source, output, entry, "" if kept else preferred)  # kept: nothing to note
 
 
 def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:

@@ -204,17 +204,37 @@ class Journal:
 
     def clip_name(self, source: Path, content: str, preferred: str, folder: Path,
                   with_depth_images: bool = False) -> str:
-        """The clip's file name: `preferred` unless a clip of another photo has (or is about
-        to have) it, or a file kbbatch did not write has it or, with_depth_images, the name of
-        a depth image written beside it (`--save-depth`); then the photo's stem and the start
-        of its sha256. One rule for the batch and the daemon, so no clip of one photo ever
-        replaces a clip of another, nor a file of the user's."""
+        """The clip's file name: the one this photo's clip already has (kept_name), else
+        `preferred` unless a clip of another photo has (or is about to have) it, or a file
+        kbbatch did not write has it or, with_depth_images, the name of a depth image written
+        beside it (`--save-depth`); then the photo's stem and the start of its sha256. One
+        rule for the batch and the daemon, so no clip of one photo ever replaces a clip of
+        another, nor a file of the user's, and an edited photo replaces its own."""
         from kbbatch.images import depth_image_names
 
+        kept = self.kept_name(source, content, preferred, folder, with_depth_images)
+        if kept is not None:
+            return kept
         companions = depth_image_names(preferred) if with_depth_images else ()
         if self._is_free(preferred, source, content, folder, companions):
             return preferred
         return f"{Path(source).stem}.{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}"
+
+    def kept_name(self, source: Path, content: str, preferred: str, folder: Path,
+                  with_depth_images: bool = False) -> str | None:
+        """The name this photo's clip was given before, while it is still this photo's: a
+        photo keeps its clip's name when a same-stem photo comes or goes beside it (a.png
+        beside a.jpg) and when it is edited after being named by its content, so an editing
+        project's reference stays right and no stale copy is left beside a new name."""
+        from kbbatch.images import depth_image_names
+
+        job = self.get(source)
+        if job is None or not job.output or job.output == preferred \
+                or Path(job.output).suffix != Path(preferred).suffix:
+            return None
+        companions = depth_image_names(job.output) if with_depth_images else ()
+        return job.output if self._is_free(job.output, source, content, folder,
+                                           companions) else None
 
     def _is_free(self, name: str, source: Path, content: str, folder: Path,
                  companions: tuple[str, ...]) -> bool:

@@ -387,7 +387,11 @@ class JobRunner:
         for job in self.journal.jobs("running"):
             source = Path(job.source)
             output = s.outbox / job.output if job.output else None
-            if output is not None and output.is_file() and source.is_file():
+            if not os.path.lexists(source):  # deleted while no daemon ran: nothing to resume
+                self.journal.forget(source)
+                log.info("dropped %s: the photo was removed before its clip was complete",
+                         job.name)
+            elif output is not None and output.is_file() and source.is_file():
                 # The clip was complete (renamed) before the crash; only the photo's move is left.
                 self.journal.finish(source, "done", job.seconds or 0.0, None,
                                     source_fingerprint(output))
@@ -449,7 +453,9 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
+            kept = self.journal.kept_name(path, content, preferred, s.outbox, options.save_depth)
             name = self.journal.clip_name(path, content, preferred, s.outbox, options.save_depth)
+            preferred = kept or preferred  # its own name, kept: nothing to note
             output = s.outbox / name
             if self.journal.is_up_to_date(path, fingerprint, settings, output):
                 inbox.forget(path)

@@ -174,6 +174,72 @@ def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):
     assert visible_clips(tmp_path / "out") == ["a.mp4"]
 
 
+
+def test_an_edited_photo_named_by_its_content_replaces_its_own_clip(tmp_path, quick_preset):
+    """A clip once named by content (its name was another card's) keeps that name when its
+    photo is edited: the edit replaces it, no second, stale clip beside it."""
+    photo(tmp_path / "card1" / "IMG_0001.jpg", seed=1)
+    path = photo(tmp_path / "card2" / "IMG_0001.jpg", seed=2)
+    out = tmp_path / "clips"
+    run_folder(tmp_path / "card1", out, quick_preset, FAST, False)
+    first = run_folder(tmp_path / "card2", out, quick_preset, FAST, False)
+    named = Path(first.results[0].output).name
+    assert named != "IMG_0001.mp4"
+    before = (out / named).read_bytes()
+    photo(path, seed=8)  # edited in place
+    edited = run_folder(tmp_path / "card2", out, quick_preset, FAST, False)
+    assert [(r.status, Path(r.output).name) for r in edited.results] == [("done", named)]
+    assert (out / named).read_bytes() != before
+    assert sorted(visible_clips(out)) == sorted(["IMG_0001.mp4", named])
+
+
+def test_a_photo_keeps_its_clip_name_when_a_same_stem_photo_comes_and_goes(tmp_path,
+                                                                          quick_preset):
+    """a.png put beside a.jpg (and taken away again) neither renames a.jpg's clip nor makes
+    it again: a clip an editing project refers to stays where it is."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    run_folder(folder, out, quick_preset, FAST, False)
+    clip = (out / "a.mp4").read_bytes()
+    photo(folder / "a.png", seed=2)
+    added = run_folder(folder, out, quick_preset, FAST, False)
+    statuses = {Path(r.source).name: (r.status, Path(r.output).name) for r in added.results}
+    assert statuses == {"a.jpg": ("skipped", "a.mp4"), "a.png": ("done", "a.png.mp4")}
+    assert not any(r.note for r in added.results), [r.note for r in added.results]
+    (folder / "a.png").unlink()
+    removed = run_folder(folder, out, quick_preset, FAST, False)
+    assert [(r.status, Path(r.output).name) for r in removed.results] == [("skipped", "a.mp4")]
+    assert visible_clips(out) == ["a.mp4", "a.png.mp4"]
+    assert (out / "a.mp4").read_bytes() == clip
+
+
+def test_a_queued_photo_deleted_before_the_rerun_leaves_no_job_behind(tmp_path, quick_preset):
+    """Killed while a.jpg's clip was remade, then a.jpg deleted: the next run drops its job
+    (it stayed queued in `kbbatch status` for ever) and keeps its earlier clip; another
+    folder's queued job (a card not in the reader) is left alone."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    gone = photo(folder / "a.jpg", seed=1)
+    photo(folder / "b.jpg", seed=2)
+    elsewhere = tmp_path / "card" / "c.jpg"
+    run_folder(folder, out, quick_preset, FAST, False)
+    journal = Journal(out)
+    try:
+        journal.finish(gone, "queued", 0.0, "interrupted")
+        journal.start(elsewhere, "fingerprint", "settings", "c.mp4", "content")
+        journal.finish(elsewhere, "queued", 0.0, "interrupted")
+    finally:
+        journal.close()
+    gone.unlink()
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    assert [(Path(r.source).name, r.status) for r in report.results] == [("b.jpg", "skipped")]
+    journal = Journal(out)
+    try:
+        assert journal.get(gone) is None
+        assert journal.get(elsewhere).state == "queued"
+    finally:
+        journal.close()
+    assert visible_clips(out) == ["a.mp4", "b.mp4"]
+
 # --- 2: full disk ---------------------------------------------------------------------------
 @pytest.mark.slow
 def test_a_full_disk_stops_the_batch_cleanly_and_a_rerun_finishes(tmp_path, tiny_mount):

@@ -362,12 +362,14 @@ def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
     entry = data["images"][photo.name]
     entry["end"]["center_x"] = round(entry["end"]["center_x"] + 7.5, 2)
     data["images"]["missing.jpg"] = {"duration_s": 1.0}
+    data["images"]["rejected.jpg"] = {"exclude": True}  # rejected, then deleted: no failure
     manifest_path.write_text(json.dumps(data))
     report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
                         manifest=load_manifest(manifest_path))
     done = [r for r in report.results if r.status == "done"]
     [missing] = report.failed
     assert "missing.jpg" in missing.error and "no photo of that file name" in missing.error
+    assert any("'rejected.jpg' is excluded and not in" in note for note in report.notes)
     [result] = done
     assert result.plan["planner"] == "manifest"
 

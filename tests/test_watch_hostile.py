@@ -624,3 +624,28 @@ def test_a_folder_removed_under_the_daemon_stops_it_and_fails_no_photo(tmp_path,
     assert f"the {which} was removed, renamed or made again" in log, log
     assert "Traceback" not in log
     assert (inbox / "b.jpg").is_file() and not (inbox / "failed").exists()
+
+
+def test_a_photo_deleted_while_no_daemon_ran_is_not_resumed_for_ever(tmp_path):
+    """kill -9 mid-clip, the photo deleted, the daemon started again: its job is dropped (said
+    once), not left running in `kbbatch status` and 'resumed' at every start."""
+    inbox, outbox, preset = folders(tmp_path)
+    gone = inbox / "gone.jpg"
+    journal = Journal(outbox)
+    try:
+        journal.start(gone, "fingerprint", "settings", "gone.mp4", "content")  # running
+    finally:
+        journal.close()
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: "watching" in daemon_log(tmp_path), 60, "the daemon to start")
+    finally:
+        assert stop(daemon) == 0
+    log = daemon_log(tmp_path)
+    assert "dropped gone.jpg: the photo was removed" in log and "resuming gone.jpg" not in log
+    journal = Journal(outbox)
+    try:
+        assert journal.get(gone) is None
+        assert journal.counts()["running"] == 0
+    finally:
+        journal.close()
