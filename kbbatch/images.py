@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import hashlib
 import io
 import logging
 import os
@@ -69,7 +70,30 @@ SAVED_DISPARITY_SUFFIX = ".disparity.png"
 def depth_image_names(clip_name: str) -> tuple[str, str]:
     """The files `--save-depth` writes beside a clip: its disparity map and depth picture."""
     stem = Path(clip_name).stem
-    return stem + SAVED_DISPARITY_SUFFIX, stem + DEPTH_PREVIEW_SUFFIX
+    return fitted_name(stem, SAVED_DISPARITY_SUFFIX), fitted_name(stem, DEPTH_PREVIEW_SUFFIX)
+
+
+NAME_MAX_BYTES = 255
+"""The longest file name (in bytes) the usual file systems take."""
+
+NAME_DIGEST_HEX = 8
+"""Hex digits of the digest that marks a stem cut to fit a name."""
+
+
+def fitted_name(stem: str, tail: str) -> str:
+    """stem + tail within NAME_MAX_BYTES: a stem too long for it is cut (at a character's
+    start) and marked with a digest of the whole, so that two long stems differing only at
+    their ends stay two names. A photo's name of 255 bytes is valid, and the names made from
+    it (its content name, its depth maps, its failure report) failed only after the render."""
+    name = stem + tail
+    if len(os.fsencode(name)) <= NAME_MAX_BYTES:
+        return name
+    raw = os.fsencode(stem)
+    mark = "~" + hashlib.sha256(raw).hexdigest()[:NAME_DIGEST_HEX]
+    room = max(0, NAME_MAX_BYTES - len(os.fsencode(mark + tail)))
+    while 0 < room < len(raw) and raw[room] & 0xC0 == 0x80:  # not inside a UTF-8 character
+        room -= 1
+    return os.fsdecode(raw[:room]) + mark + tail
 
 
 DEPTH_MAP_NAME = re.compile(r"\.(depth|disparity)\.(png|npy|exr)$", re.IGNORECASE)

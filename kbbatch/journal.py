@@ -210,7 +210,7 @@ class Journal:
         beside it (`--save-depth`); then the photo's stem and the start of its sha256. One
         rule for the batch and the daemon, so no clip of one photo ever replaces a clip of
         another, nor a file of the user's, and an edited photo replaces its own."""
-        from kbbatch.images import depth_image_names
+        from kbbatch.images import depth_image_names, fitted_name
 
         kept = self.kept_name(source, content, preferred, folder, with_depth_images)
         if kept is not None:
@@ -218,7 +218,8 @@ class Journal:
         companions = depth_image_names(preferred) if with_depth_images else ()
         if self._is_free(preferred, source, content, folder, companions):
             return preferred
-        return f"{Path(source).stem}.{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}"
+        return fitted_name(Path(source).stem,
+                           f".{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}")
 
     def kept_name(self, source: Path, content: str, preferred: str, folder: Path,
                   with_depth_images: bool = False) -> str | None:

@@ -36,6 +36,7 @@ from kbbatch.images import (
     atomic_output,
     broken_link_reason,
     entry_kind,
+    fitted_name,
     free_bytes,
     is_image_file,
     scan_folder,
@@ -180,7 +181,7 @@ def unique_destination(folder: Path, name: str) -> Path:
     stem, suffix = Path(name).stem, Path(name).suffix
     counter = 1
     while os.path.lexists(candidate):  # a broken link there is a file not to replace too
-        candidate = folder / f"{stem}.{counter}{suffix}"
+        candidate = folder / fitted_name(stem, f".{counter}{suffix}")
         counter += 1
     return candidate
 
@@ -702,11 +703,12 @@ class JobRunner:
 
     def write_failure_report(self, photo: Path, result: ClipResult) -> None:
         folder = photo.parent if photo.parent.name == FAILED_FOLDER else self.failure_reports
-        report = folder / (photo.name + ".error.json")
+        name = fitted_name(photo.name, ".error.json")
+        report = folder / name
         data = {"photo": str(photo), "error": result.error, "detail": result.detail,
                 "result": asdict(result)}
         try:
-            report = unique_destination(folder, photo.name + ".error.json")
+            report = unique_destination(folder, name)
             with atomic_output(report, ".json") as temp_path:
                 temp_path.write_text(json.dumps(data, indent=2), encoding="utf-8")
         except OSError as error:

@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -239,6 +240,43 @@ def test_a_queued_photo_deleted_before_the_rerun_leaves_no_job_behind(tmp_path, 
     finally:
         journal.close()
     assert visible_clips(out) == ["a.mp4", "b.mp4"]
+
+
+def test_photos_named_in_255_bytes_get_clips_depth_maps_and_content_names(tmp_path,
+                                                                          quick_preset):
+    """The names made from a photo's longest valid name (its depth maps', its content name)
+    are cut to fit, each marked by a digest of the whole: they failed after the render."""
+    name = "N" * 251 + ".jpg"
+    for card, seed in (("card1", 1), ("card2", 2)):
+        photo(tmp_path / card / name, seed=seed)
+    out = tmp_path / "out"
+    plain = run_folder(tmp_path / "card1", out, quick_preset, FAST, False)
+    assert [(r.status, r.error) for r in plain.results] == [("done", None)]
+    saving = replace(FAST, save_depth=True)
+    for card in ("card1", "card2"):  # card 2's clip is named by content: a longer name
+        report = run_folder(tmp_path / card, out, quick_preset, saving, False, force=True)
+        assert [(r.status, r.error) for r in report.results] == [("done", None)], card
+    assert len(visible_clips(out)) == 2
+    assert len(list(out.glob("*.disparity.png"))) == 2
+    assert len(list(out.glob("*.depth-preview.png"))) == 2
+    assert all(len(os.fsencode(p.name)) <= 255 for p in out.iterdir())
+    # made again without --save-depth, its maps go (found by the same cut names)
+    again = run_folder(tmp_path / "card1", out, quick_preset, FAST, False, force=True)
+    assert [(r.status, r.error) for r in again.results] == [("done", None)]
+    assert len(list(out.glob("*.disparity.png"))) == 1
+
+
+def test_a_cut_name_keeps_characters_whole_and_long_stems_apart():
+    from kbbatch.images import fitted_name
+
+    assert fitted_name("short", ".mp4") == "short.mp4"
+    long_a, long_b = "é" * 200 + "a", "é" * 200 + "b"  # 401 bytes each, differing at the end
+    cut_a, cut_b = fitted_name(long_a, ".disparity.png"), fitted_name(long_b, ".disparity.png")
+    assert cut_a != cut_b
+    for cut in (cut_a, cut_b):
+        assert len(os.fsencode(cut)) <= 255 and cut.endswith(".disparity.png")
+        cut.encode("utf-8")  # no character cut in half
+        assert cut.startswith("é" * 100)
 
 # --- 2: full disk ---------------------------------------------------------------------------
 @pytest.mark.slow
