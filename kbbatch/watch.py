@@ -737,8 +737,17 @@ class Daemon:
 
     def run(self) -> int:
         s = self.settings
+        if os.path.lexists(s.inbox) and not s.inbox.is_dir():
+            raise OutputFolderError(f"{s.inbox}: the inbox is not a folder")
+        if not s.inbox.is_dir():
+            # A missing parent is a typo or a share not mounted yet: made with its parents, the
+            # inbox was an empty folder on the local disk that the share then hid, for good.
+            if not s.inbox.parent.is_dir():
+                raise OutputFolderError(f"{s.inbox}: no such inbox, nor its folder "
+                                        f"{s.inbox.parent} (a share not mounted yet?)")
+            s.inbox.mkdir(exist_ok=True)
+            log.info("made the inbox %s", s.inbox)
         check_writable(s.outbox)
-        s.inbox.mkdir(parents=True, exist_ok=True)
         for name in (DONE_FOLDER, FAILED_FOLDER):  # else a traceback after the first clip
             where = s.inbox / name
             if (where.exists() or where.is_symlink()) and not where.is_dir():

@@ -111,6 +111,21 @@ def test_watch_refuses_its_inbox_as_the_output_folder(tmp_path):
     assert "another kbbatch" not in result.output
 
 
+def test_watch_refuses_an_inbox_whose_folder_is_missing(tmp_path):
+    """A share not mounted yet (or a typo): the daemon made the whole path and watched an empty
+    local folder that the share then hid. An inbox in an existing folder is still made."""
+    from click.testing import CliRunner
+
+    missing = tmp_path / "share" / "inbox"
+    result = CliRunner().invoke(cli.main, ["watch", str(missing), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 1
+    assert f"{missing}: no such inbox, nor its folder" in result.output
+    assert not (tmp_path / "share").exists() and not (tmp_path / "o").exists()
+    (tmp_path / "a-file").write_text("x")
+    result = CliRunner().invoke(cli.main, ["watch", str(tmp_path / "a-file"), "--out",
+                                           str(tmp_path / "o")])
+    assert result.exit_code == 2 and "is a file" in result.output
+
 def test_plan_prints_the_render_command_that_repeats_its_options(tmp_path):
     """A manifest holds crops only: `plan --duration 1.5` wrote nothing of the duration, and
     the render that followed used the preset's."""
