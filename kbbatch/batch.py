@@ -132,7 +132,9 @@ def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
 
 @contextlib.contextmanager
 def stop_on_sigterm(stop: dict) -> Iterator[None]:
-    """SIGTERM asks the batch to stop after the clip in progress, as it asks the daemon."""
+    """SIGTERM asks the batch to stop after the clip in progress, as it asks the daemon; so
+    does a hang-up (SIGHUP: the SSH session dropped), which killed the batch at once, with
+    no report."""
     import signal
     import threading
 
@@ -140,14 +142,30 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
         yield
         return
 
-    def request(*_: object) -> None:
-        stop["by"] = "SIGTERM"
+    def request(number: int, _frame: object) -> None:
+        stop["by"] = signal.Signals(number).name
+        if number == signal.SIGHUP:
+            _away_from_the_terminal()
 
-    previous = signal.signal(signal.SIGTERM, request)
+    stopping = (signal.SIGTERM, signal.SIGHUP)
+    previous = {number: signal.signal(number, request) for number in stopping}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+def _away_from_the_terminal() -> None:
+    """After a hang-up, writing to the terminal fails (EIO) and would break the clip in
+    progress: what is printed goes nowhere instead; the run report is still written."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for descriptor in (1, 2):
+            if os.isatty(descriptor):
+                os.dup2(null, descriptor)
+    finally:
+        os.close(null)
 
 
 SUBFOLDERS_NAMED = 5
@@ -341,10 +359,16 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
             return ClipResult(str(source), str(output), "skipped", 0.0)
+        previous = journal.get(source)
         journal.start(source, fingerprint, settings, name, content)
     except JournalError as error:
         return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
-    return ClipJob(source, output, entry, "" if kept else preferred)  # kept: nothing to note
+    # An edit, or another photo saved under this name (one import folder for every card):
+    # either way the clip is replaced, and the user is told.
+    replaces = (previous is not None and previous.state == "done" and previous.output == name
+                and previous.content not in (None, content) and output.is_file())
+    return ClipJob(source, output, entry, "" if kept else preferred,  # kept: nothing to note
+                   replaces_other_bytes=replaces)
 
 
 def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
@@ -353,6 +377,11 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
 
     if job.preferred:
         result.note = clip_name_note(job.source, job.preferred, job.output.name)
+    if job.replaces_other_bytes and result.status == "done":
+        replaced = (f"{job.source.name} changed since {job.output.name} was made from it: that "
+                    "clip is replaced (a photo saved under the name of another is taken for "
+                    "an edit of it)")
+        result.note = f"{result.note}; {replaced}" if result.note else replaced
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None
         # an interrupted clip is queued again, as one whose run was stopped, and so is one its

@@ -114,8 +114,12 @@ def _guarded(method):
 
 class Journal:
     @_guarded
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, read_only: bool = False) -> None:
+        """read_only: for looking only (`kbbatch status`), which must work on a full disk."""
         self.path = folder / JOURNAL_NAME
+        if read_only:
+            self.connection = self._read_only_connection()
+            return
         folder.mkdir(parents=True, exist_ok=True)
         self.connection = sqlite3.connect(self.path, timeout=30, isolation_level=None)
         self.connection.execute("PRAGMA journal_mode=WAL")
@@ -126,6 +130,23 @@ class Journal:
         for name, kind in COLUMNS:  # journals written by earlier versions
             if name not in present:
                 self.connection.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
+
+    def _read_only_connection(self) -> sqlite3.Connection:
+        uri = self.path.absolute().as_uri()
+        connection = sqlite3.connect(f"{uri}?mode=ro", uri=True, timeout=30,
+                                     isolation_level=None)
+        try:
+            connection.execute("SELECT COUNT(*) FROM jobs").fetchone()
+            return connection
+        except sqlite3.OperationalError:
+            wal = self.path.with_name(self.path.name + "-wal")
+            if os.path.exists(wal) and os.path.getsize(wal) > 0:
+                raise
+            connection.close()
+        # No write-ahead log to read, so the file is the whole journal: opened as immutable,
+        # SQLite makes no shared-memory file (-shm) for it, which a full disk refused.
+        return sqlite3.connect(f"{uri}?mode=ro&immutable=1", uri=True, timeout=30,
+                               isolation_level=None)
 
     def close(self) -> None:
         self.connection.close()

@@ -711,6 +711,7 @@ class ClipJob:
     output: Path
     entry: ManifestEntry | None = None
     preferred: str = ""  # the name the naming rule wanted (output differs where it was taken)
+    replaces_other_bytes: bool = False  # output holds a clip of this photo's earlier bytes
 
 
 class ClipExecutor(Protocol):

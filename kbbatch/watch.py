@@ -859,7 +859,7 @@ def _folder_in_use(outbox: Path) -> bool:
 
 def status_lines(outbox: Path) -> list[str]:
     """The journal's counts and failures, for `kbbatch status`."""
-    journal = Journal(outbox)
+    journal = Journal(outbox, read_only=True)
     try:
         counts = journal.counts()
         lines = [", ".join(f"{state} {count}" for state, count in counts.items())]

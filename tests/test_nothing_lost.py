@@ -173,6 +173,12 @@ def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):
     report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
     assert [r.status for r in report.results] == ["done"]
     assert visible_clips(tmp_path / "out") == ["a.mp4"]
+    # said, since it may be another photo under the same name (one import folder for every
+    # card): the clip it replaces is named
+    [result] = report.results
+    assert result.note and "a.jpg changed since a.mp4 was made from it" in result.note
+    again = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False, force=True)
+    assert [(r.status, r.note) for r in again.results] == [("done", None)]  # same bytes
 
 
 
@@ -314,6 +320,16 @@ def test_a_full_disk_stops_the_batch_cleanly_and_a_rerun_finishes(tmp_path, tiny
         shutil.rmtree(out)
 
 
+def test_status_reads_the_journal_of_a_full_disk(tmp_path, tiny_mount, quick_preset):
+    """`kbbatch status` only reads: on a full disk it said the journal could not be written."""
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    out = tiny_mount / "out"
+    run_folder(tmp_path / "in", out, quick_preset, FAST, False)
+    fill(tiny_mount, 0)
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert status.returncode == 0, status.stderr
+    assert "done 1" in status.stdout
+
 @pytest.mark.slow
 def test_a_clip_its_disk_cannot_take_stops_the_batch_and_fails_no_photo(tmp_path, tiny_mount):
     """Room for the journal, not for a lossless clip: before, every photo failed in turn."""
@@ -435,8 +451,10 @@ def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
+    """A hang-up (an SSH session dropped) stops it as SIGTERM does: it killed the batch at
+    once with no report."""
     folder, out = slow_folder(tmp_path), tmp_path / "out"
     returncode, stderr = act_while_encoding(folder, out, 6,
                                             lambda batch: batch.send_signal(stop_signal))
@@ -444,10 +462,10 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
     assert "Traceback" not in stderr and "run again" in stderr, stderr
     assert not list(out.glob(".*part*")), "a partial clip was left"
     clips = visible_clips(out)
-    if stop_signal == signal.SIGTERM:  # the clip in progress is finished, the next not begun
+    if stop_signal != signal.SIGINT:  # the clip in progress is finished, the next not begun
         assert clips == ["p0.mp4"]
         report = json.loads((out / "kbbatch-report.json").read_text())
-        assert report["stopped_by"] == "SIGTERM"
+        assert report["stopped_by"] == stop_signal.name
     else:  # the report lists the photo that was stopped
         report = json.loads((out / "kbbatch-report.json").read_text())
         [stopped] = [c for c in report["clips"] if c["status"] == "interrupted"]
