@@ -142,12 +142,17 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
         yield
         return
 
+    # a terminal's descriptors now: once it hangs up, isatty() no longer says so
+    terminal = [descriptor for descriptor in (1, 2) if os.isatty(descriptor)]
+
     def request(number: int, _frame: object) -> None:
         stop["by"] = signal.Signals(number).name
         if number == signal.SIGHUP:
-            _away_from_the_terminal()
+            _away_from(terminal)
 
-    stopping = (signal.SIGTERM, signal.SIGHUP)
+    stopping = [signal.SIGTERM]
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup kbbatch ...`: ignored
+        stopping.append(signal.SIGHUP)
     previous = {number: signal.signal(number, request) for number in stopping}
     try:
         yield
@@ -156,14 +161,13 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
             signal.signal(number, handler)
 
 
-def _away_from_the_terminal() -> None:
-    """After a hang-up, writing to the terminal fails (EIO) and would break the clip in
-    progress: what is printed goes nowhere instead; the run report is still written."""
+def _away_from(terminal: list[int]) -> None:
+    """After a hang-up, writing to the terminal fails (EIO) and would fail the clip in
+    progress: what is printed there goes nowhere instead; the run report is still written."""
     null = os.open(os.devnull, os.O_WRONLY)
     try:
-        for descriptor in (1, 2):
-            if os.isatty(descriptor):
-                os.dup2(null, descriptor)
+        for descriptor in terminal:
+            os.dup2(null, descriptor)
     finally:
         os.close(null)
 
@@ -247,7 +251,7 @@ def run_folder(
     try:
         remove_partial_clips(output_folder)
         journal = Journal(output_folder)
-        forget_deleted_photos(journal, folder)
+        settle_deleted_photos(journal, folder, output_folder)
     except JournalError as error:
         lock.release()
         raise OutputFolderError(str(error)) from error
@@ -325,16 +329,16 @@ FOLDER_GONE = "the output folder removed or renamed"
 DISK_FULL = "a full output disk"
 
 
-def forget_deleted_photos(journal, folder: Path) -> None:
+def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
     """Unfinished jobs of this folder's photos that were deleted since: nothing is left to
-    make of them, and kept queued they showed in `kbbatch status` for ever. (Another folder's
-    jobs are left alone: its card may only be out of the reader.)"""
+    make of them, and kept queued they showed in `kbbatch status` for ever (Journal.photo_gone).
+    Another folder's jobs are left alone: its card may only be out of the reader."""
     folder = folder.absolute()
     for state in ("queued", "running"):
         for job in journal.jobs(state):
             source = Path(job.source)
             if source.parent == folder and not os.path.lexists(source):
-                journal.forget(source)
+                journal.photo_gone(source, output_folder)
 
 
 def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,

@@ -8,6 +8,7 @@ name is never given to a second, different photo. Jobs are keyed by the photo's 
 
 from __future__ import annotations
 
+import itertools
 import os
 import sqlite3
 import time
@@ -106,7 +107,8 @@ def _guarded(method):
         try:
             return method(self, *args, **kwargs)
         except sqlite3.Error as error:
-            raise JournalError(f"{self.path}: job journal cannot be written ({error})"
+            verb = "read" if getattr(self, "read_only", False) else "written"
+            raise JournalError(f"{self.path}: job journal cannot be {verb} ({error})"
                                f"{free_space_note(self.path.parent)}") from error
     wrapper.__doc__ = method.__doc__
     return wrapper
@@ -117,6 +119,7 @@ class Journal:
     def __init__(self, folder: Path, read_only: bool = False) -> None:
         """read_only: for looking only (`kbbatch status`), which must work on a full disk."""
         self.path = folder / JOURNAL_NAME
+        self.read_only = read_only
         if read_only:
             self.connection = self._read_only_connection()
             return
@@ -197,6 +200,23 @@ class Journal:
                                     (_stored(destination), _stored(source)))
 
     @_guarded
+    def photo_gone(self, source: Path, folder: Path) -> None:
+        """An unfinished job whose photo was deleted: nothing is left to make. A clip of an
+        earlier make still at its name stays the photo's (done, with settings unknown, so the
+        photo, put back, is made again under that name rather than a second one beside it);
+        without one the job is forgotten."""
+        job = self.get(source)
+        if job is None:
+            return
+        output = folder / job.output if job.output else None
+        if output is None or not output.is_file():
+            self.forget(source)
+            return
+        self.connection.execute(
+            "UPDATE jobs SET state = 'done', settings = '', error = NULL, clip = ?, updated = ?"
+            " WHERE source = ?", (source_fingerprint(output), time.time(), _stored(source)))
+
+    @_guarded
     def forget(self, source: Path) -> None:
         """The photo is gone (deleted by its owner before its clip was made)."""
         self.connection.execute("DELETE FROM jobs WHERE source = ?", (_stored(source),))
@@ -239,8 +259,16 @@ class Journal:
         companions = depth_image_names(preferred) if with_depth_images else ()
         if self._is_free(preferred, source, content, folder, companions):
             return preferred
-        return fitted_name(Path(source).stem,
-                           f".{content[:CONTENT_NAME_HEX]}{Path(preferred).suffix}")
+        # A content name is checked too: kept through an edit, it may hold a clip of other
+        # bytes than its digest says (the edited photo's), which the original, imported
+        # again, must not replace.
+        for number in itertools.count(1):
+            tail = f".{content[:CONTENT_NAME_HEX]}" + (f".{number}" if number > 1 else "")
+            name = fitted_name(Path(source).stem, tail + Path(preferred).suffix)
+            companions = depth_image_names(name) if with_depth_images else ()
+            if self._is_free(name, source, content, folder, companions):
+                return name
+        raise AssertionError("unreachable")
 
     def kept_name(self, source: Path, content: str, preferred: str, folder: Path,
                   with_depth_images: bool = False) -> str | None:

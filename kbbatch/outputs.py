@@ -7,6 +7,7 @@ import tempfile
 from collections import Counter
 from pathlib import Path
 
+from kbbatch.images import fitted_name
 from kbbatch.pipeline import CLIP_SUFFIX
 
 
@@ -31,7 +32,7 @@ def output_names(sources: list[Path]) -> dict[Path, str]:
             number += 1
             name = f"{base}.{number}"
         taken.add(name.lower())
-        names[source] = name + CLIP_SUFFIX
+        names[source] = fitted_name(name, CLIP_SUFFIX)  # a 251-byte stem's `x.jpg.mp4` too
     return names
 
 

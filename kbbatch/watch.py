@@ -388,8 +388,10 @@ class JobRunner:
         for job in self.journal.jobs("running"):
             source = Path(job.source)
             output = s.outbox / job.output if job.output else None
-            if not os.path.lexists(source):  # deleted while no daemon ran: nothing to resume
-                self.journal.forget(source)
+            if source.parent == s.inbox and not os.path.lexists(source):
+                # deleted while no daemon ran: nothing to resume (a batch's photo elsewhere
+                # may only be on a card out of the reader: left alone)
+                self.journal.photo_gone(source, s.outbox)
                 log.info("dropped %s: the photo was removed before its clip was complete",
                          job.name)
             elif output is not None and output.is_file() and source.is_file():
@@ -739,15 +741,15 @@ class Daemon:
         s = self.settings
         if os.path.lexists(s.inbox) and not s.inbox.is_dir():
             raise OutputFolderError(f"{s.inbox}: the inbox is not a folder")
+        # A missing parent is a typo or a share not mounted yet: made with its parents, the
+        # inbox was an empty folder on the local disk that the share then hid, for good.
+        if not s.inbox.is_dir() and not s.inbox.parent.is_dir():
+            raise OutputFolderError(f"{s.inbox}: no such inbox, nor its folder "
+                                    f"{s.inbox.parent} (a share not mounted yet?)")
+        check_writable(s.outbox)
         if not s.inbox.is_dir():
-            # A missing parent is a typo or a share not mounted yet: made with its parents, the
-            # inbox was an empty folder on the local disk that the share then hid, for good.
-            if not s.inbox.parent.is_dir():
-                raise OutputFolderError(f"{s.inbox}: no such inbox, nor its folder "
-                                        f"{s.inbox.parent} (a share not mounted yet?)")
             s.inbox.mkdir(exist_ok=True)
             log.info("made the inbox %s", s.inbox)
-        check_writable(s.outbox)
         for name in (DONE_FOLDER, FAILED_FOLDER):  # else a traceback after the first clip
             where = s.inbox / name
             if (where.exists() or where.is_symlink()) and not where.is_dir():

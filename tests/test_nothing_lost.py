@@ -200,6 +200,26 @@ def test_an_edited_photo_named_by_its_content_replaces_its_own_clip(tmp_path, qu
     assert sorted(visible_clips(out)) == sorted(["IMG_0001.mp4", named])
 
 
+def test_a_content_name_kept_through_an_edit_is_not_taken_by_the_original_again(
+        tmp_path, quick_preset):
+    """IMG_0001.<digest of P1>.mp4, kept through an edit, holds the edit's clip: the original
+    P1 imported again from another folder took that name and replaced the edit's clip."""
+    out = tmp_path / "clips"
+    out.mkdir()
+    (out / "IMG_0001.mp4").write_bytes(b"the user's own file")
+    path = photo(tmp_path / "card" / "IMG_0001.jpg", seed=1)
+    named = Path(run_folder(tmp_path / "card", out, quick_preset, FAST, False)
+                 .results[0].output).name
+    photo(path, seed=2)  # edited: its clip keeps the name
+    run_folder(tmp_path / "card", out, quick_preset, FAST, False)
+    edit = (out / named).read_bytes()
+    photo(tmp_path / "reimport" / "IMG_0001.jpg", seed=1)  # the original's very bytes
+    again = run_folder(tmp_path / "reimport", out, quick_preset, FAST, False)
+    [result] = again.results
+    assert result.status == "done" and Path(result.output).name not in (named, "IMG_0001.mp4")
+    assert (out / named).read_bytes() == edit, "the edit's clip was replaced"
+    assert (out / "IMG_0001.mp4").read_bytes() == b"the user's own file"
+
 def test_a_photo_keeps_its_clip_name_when_a_same_stem_photo_comes_and_goes(tmp_path,
                                                                           quick_preset):
     """a.png put beside a.jpg (and taken away again) neither renames a.jpg's clip nor makes
@@ -221,30 +241,44 @@ def test_a_photo_keeps_its_clip_name_when_a_same_stem_photo_comes_and_goes(tmp_p
 
 
 def test_a_queued_photo_deleted_before_the_rerun_leaves_no_job_behind(tmp_path, quick_preset):
-    """Killed while a.jpg's clip was remade, then a.jpg deleted: the next run drops its job
-    (it stayed queued in `kbbatch status` for ever) and keeps its earlier clip; another
-    folder's queued job (a card not in the reader) is left alone."""
+    """Killed while a.jpg's clip was remade, then a.jpg taken away: the next run settles its
+    job (it stayed queued in `kbbatch status` for ever) keeping its earlier clip its own, so
+    a.jpg put back is made again under that name, not a second one beside it with a note that
+    a.mp4 was another photo's. A job without a clip is forgotten; another folder's queued job
+    (a card not in the reader) is left alone."""
     folder, out = tmp_path / "in", tmp_path / "out"
     gone = photo(folder / "a.jpg", seed=1)
     photo(folder / "b.jpg", seed=2)
+    never = photo(folder / "d.jpg", seed=3)
     elsewhere = tmp_path / "card" / "c.jpg"
     run_folder(folder, out, quick_preset, FAST, False)
+    (out / "d.mp4").unlink()
     journal = Journal(out)
     try:
         journal.finish(gone, "queued", 0.0, "interrupted")
+        journal.finish(never, "queued", 0.0, "interrupted")
         journal.start(elsewhere, "fingerprint", "settings", "c.mp4", "content")
         journal.finish(elsewhere, "queued", 0.0, "interrupted")
     finally:
         journal.close()
-    gone.unlink()
+    aside = tmp_path / "aside.jpg"
+    gone.rename(aside)
+    never.unlink()
     report = run_folder(folder, out, quick_preset, FAST, False)
     assert [(Path(r.source).name, r.status) for r in report.results] == [("b.jpg", "skipped")]
     journal = Journal(out)
     try:
-        assert journal.get(gone) is None
+        assert journal.counts()["queued"] == 1  # the other folder's
+        assert journal.get(gone).state == "done" and journal.get(never) is None
         assert journal.get(elsewhere).state == "queued"
     finally:
         journal.close()
+    assert visible_clips(out) == ["a.mp4", "b.mp4"]
+    aside.rename(gone)
+    back = run_folder(folder, out, quick_preset, FAST, False)
+    statuses = {Path(r.source).name: (r.status, Path(r.output).name, r.note)
+                for r in back.results}
+    assert statuses == {"a.jpg": ("done", "a.mp4", None), "b.jpg": ("skipped", "b.mp4", None)}
     assert visible_clips(out) == ["a.mp4", "b.mp4"]
 
 
@@ -474,6 +508,46 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
     assert "RUNNING" not in status.stdout, status.stdout
 
 
+@pytest.mark.slow
+def test_a_hang_up_of_its_terminal_stops_a_batch_cleanly_unless_it_was_nohup(tmp_path):
+    """On a terminal that has hung up, isatty() is false and every write fails (EIO): the
+    summary's print failed the run with a traceback (exit 1). Under nohup (SIGHUP ignored
+    when it started) a hang-up is no reason to stop."""
+    import pty
+
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    master, terminal = pty.openpty()
+    process = subprocess.Popen(
+        [*CLI, str(folder), "-o", str(out), *FAST_CLI, "--quiet", "--duration", "6"],
+        stdout=terminal, stderr=terminal)
+    os.close(terminal)
+    try:
+        wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
+        os.close(master)  # the terminal hangs up ...
+        process.send_signal(signal.SIGHUP)  # ... and the kernel says so
+        assert process.wait(timeout=300) == 130
+    finally:
+        if process.poll() is None:
+            process.kill()
+    report = json.loads((out / "kbbatch-report.json").read_text())
+    assert report["stopped_by"] == "SIGHUP"
+    assert [c["status"] for c in report["clips"]] == ["done"]
+    assert visible_clips(out) == ["p0.mp4"]
+
+    nohup = subprocess.Popen(
+        [*CLI, str(folder), "-o", str(tmp_path / "nohup"), *FAST_CLI, "--duration", "3"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    try:
+        wait_for(lambda: list((tmp_path / "nohup").glob(".*.part*")), 180, "a clip")
+        nohup.send_signal(signal.SIGHUP)
+        _, stderr = nohup.communicate(timeout=300)
+    finally:
+        if nohup.poll() is None:
+            nohup.kill()
+    assert nohup.returncode == 0, stderr
+    assert visible_clips(tmp_path / "nohup") == ["p0.mp4", "p1.mp4"]
+
 def test_a_second_batch_into_the_same_folder_is_refused(tmp_path, quick_preset):
     photo(tmp_path / "in" / "a.jpg", seed=1)
     (tmp_path / "out").mkdir()
@@ -576,13 +650,15 @@ def test_plan_previews_of_same_stem_photos_do_not_collide(tmp_path, quick_preset
     ("x.jpg", "x.png", "x.jpg.png"),  # a stem that is another photo's full name
     ("A.jpg", "a.jpg", "a.jpg.2.png"),  # names differing in case, and one like their number
     ("IMG_1.JPG", "img_1.png", "IMG_1.jpg.png", "other.jpg"),
+    ("N" * 251 + ".jpg", "N" * 251 + ".png", "n" * 251 + ".jpg"),  # names of 255 bytes
 ])
 def test_clip_names_of_a_folder_are_distinct_ignoring_case(names):
     from kbbatch.outputs import output_names
 
     clips = output_names([Path("/photos") / name for name in names])
     assert len({clip.lower() for clip in clips.values()}) == len(names), clips
-    assert clips[Path("/photos") / names[-1]].startswith(Path(names[-1]).stem)
+    assert clips[Path("/photos") / names[-1]].startswith(Path(names[-1]).stem[:200])
+    assert all(len(os.fsencode(clip)) <= 255 for clip in clips.values())
 
 
 def test_plan_beside_the_photos_adds_no_photo_and_survives_a_name_that_is_not_utf8(
