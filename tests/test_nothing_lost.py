@@ -431,10 +431,17 @@ def test_a_temporary_folder_too_small_for_the_frames_stops_the_batch_without_a_c
 
 
 # --- 4: kills -------------------------------------------------------------------------------
+def hang_ups_heard() -> None:
+    """In a child: SIGHUP as a terminal's process has it, not as this test run's (under nohup,
+    as a CI job may be, it is ignored, and the batch keeps it so)."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def start_batch(folder: Path, out: Path, *extra: str) -> subprocess.Popen:
     command = [*CLI, str(folder), "-o", str(out), "--depth", "ramp", "--planner", "center",
                "--preset", "preview", "--quiet", *extra]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=hang_ups_heard)
 
 
 def act_while_encoding(folder: Path, out: Path, duration_s: float, act) -> tuple[int, str]:
@@ -519,7 +526,7 @@ def test_a_hang_up_of_its_terminal_stops_a_batch_cleanly_unless_it_was_nohup(tmp
     master, terminal = pty.openpty()
     process = subprocess.Popen(
         [*CLI, str(folder), "-o", str(out), *FAST_CLI, "--quiet", "--duration", "6"],
-        stdout=terminal, stderr=terminal)
+        stdout=terminal, stderr=terminal, preexec_fn=hang_ups_heard)
     os.close(terminal)
     try:
         wait_for(lambda: list(out.glob(".*.part*")), 180, "a clip being encoded")
