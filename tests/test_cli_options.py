@@ -273,3 +273,33 @@ def test_a_control_character_in_a_name_cannot_split_a_line_or_drive_the_terminal
     record = logging.LogRecord("kbbatch", logging.WARNING, __file__, 1, "%s: skipped", ("a\nb",),
                                None)
     assert cli.OneLineFormatter(cli.TIMED_LOG_FORMAT).format(record).endswith(" a\\nb: skipped")
+
+
+def test_save_depth_refuses_the_photo_folder_by_any_path(tmp_path):
+    """--save-depth's maps, written among the photos, are read as the user's on the next run:
+    refused for the folder itself, a link to it, and a bind mount of it (another path to the
+    same folder, which resolving did not see)."""
+    import subprocess
+
+    from click.testing import CliRunner
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (tmp_path / "link").symlink_to(photos)
+    paths = [photos, tmp_path / "link"]
+    mount = tmp_path / "mount"
+    mount.mkdir()
+    bound = subprocess.run(["mount", "--bind", str(photos), str(mount)], capture_output=True)
+    if bound.returncode == 0:
+        paths.append(mount)
+    try:
+        for path in paths:
+            result = CliRunner().invoke(cli.main, ["render", str(photos), "-o", str(path),
+                                                   "--save-depth"])
+            assert result.exit_code == 1, (path, result.output)
+            assert "--save-depth writes <name>.disparity.png" in result.output, path
+    finally:
+        if bound.returncode == 0:
+            subprocess.run(["umount", "-l", str(mount)], check=False)
+    if bound.returncode != 0:  # the folder and the link were checked
+        pytest.skip(f"cannot bind-mount here: {bound.stderr.decode().strip()}")
