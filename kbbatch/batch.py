@@ -308,8 +308,7 @@ def run_folder(
         journal.close()
         # the folder as it is found again: 'photos/../out' named no folder a user would look in
         report = RunReport(str(folder.absolute()), str(output_folder.resolve()), preset.name,
-                           results,
-                           notes, stop.get("by"), options.device, providers_used())
+                           results, notes, stop.get("by"), options.device, providers_used())
         if folder_identity(output_folder) != identity:  # not made again: the user's doing
             lock.release()
             raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
@@ -358,12 +357,11 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
-        kept = journal.kept_name(source, content, preferred, output_folder, options.save_depth)
+        previous = journal.get(source)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
             return ClipResult(str(source), str(output), "skipped", 0.0)
-        previous = journal.get(source)
         journal.start(source, fingerprint, settings, name, content)
     except JournalError as error:
         return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
@@ -371,7 +369,8 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     # either way the clip is replaced, and the user is told.
     replaces = (previous is not None and previous.state == "done" and previous.output == name
                 and previous.content not in (None, content) and output.is_file())
-    return ClipJob(source, output, entry, "" if kept else preferred,  # kept: nothing to note
+    kept = previous is not None and previous.output == name  # its own name: nothing to note
+    return ClipJob(source, output, entry, "" if kept else preferred,
                    replaces_other_bytes=replaces)
 
 

@@ -289,8 +289,7 @@ def _check_depth_beside_photos(save_depth: bool, photos: Path, clips: Path) -> N
     """--save-depth writes `<clip>.disparity.png`, the name of a user's depth map: written
     beside the photos, the next run would read the tool's own map as the user's. (The same
     folder by its file, too: a bind mount of the photo folder resolves to another path.)"""
-    same = photos.resolve() == clips.resolve() or (
-        photos.is_dir() and clips.is_dir() and os.path.samefile(photos, clips))
+    same = photos.is_dir() and clips.is_dir() and os.path.samefile(photos, clips)
     if save_depth and same:
         raise click.ClickException(
             f"{clips}: --save-depth writes <name>.disparity.png beside each clip, which kbbatch "

@@ -8,7 +8,6 @@ name is never given to a second, different photo. Jobs are keyed by the photo's 
 
 from __future__ import annotations
 
-import itertools
 import os
 import sqlite3
 import time
@@ -245,7 +244,7 @@ class Journal:
 
     def clip_name(self, source: Path, content: str, preferred: str, folder: Path,
                   with_depth_images: bool = False) -> str:
-        """The clip's file name: the one this photo's clip already has (kept_name), else
+        """The clip's file name: the one this photo's clip already has, else
         `preferred` unless a clip of another photo has (or is about to have) it, or a file
         kbbatch did not write has it or, with_depth_images, the name of a depth image written
         beside it (`--save-depth`); then the photo's stem and the start of its sha256. One
@@ -253,38 +252,30 @@ class Journal:
         another, nor a file of the user's, and an edited photo replaces its own."""
         from kbbatch.images import depth_image_names, fitted_name
 
-        kept = self.kept_name(source, content, preferred, folder, with_depth_images)
-        if kept is not None:
-            return kept
-        companions = depth_image_names(preferred) if with_depth_images else ()
-        if self._is_free(preferred, source, content, folder, companions):
+        def free(name: str) -> bool:
+            companions = depth_image_names(name) if with_depth_images else ()
+            return self._is_free(name, source, content, folder, companions)
+
+        # The name this photo's clip was given before, while it is still its own: kept when
+        # a same-stem photo comes or goes beside it (a.png beside a.jpg) and through an edit
+        # of a photo named by its content, so an editing project's reference stays right and
+        # no stale copy is left beside a new name.
+        job = self.get(source)
+        if job is not None and job.output \
+                and Path(job.output).suffix == Path(preferred).suffix and free(job.output):
+            return job.output
+        if free(preferred):
             return preferred
         # A content name is checked too: kept through an edit, it may hold a clip of other
         # bytes than its digest says (the edited photo's), which the original, imported
         # again, must not replace.
-        for number in itertools.count(1):
+        number = 1
+        while True:
             tail = f".{content[:CONTENT_NAME_HEX]}" + (f".{number}" if number > 1 else "")
             name = fitted_name(Path(source).stem, tail + Path(preferred).suffix)
-            companions = depth_image_names(name) if with_depth_images else ()
-            if self._is_free(name, source, content, folder, companions):
+            if free(name):
                 return name
-        raise AssertionError("unreachable")
-
-    def kept_name(self, source: Path, content: str, preferred: str, folder: Path,
-                  with_depth_images: bool = False) -> str | None:
-        """The name this photo's clip was given before, while it is still this photo's: a
-        photo keeps its clip's name when a same-stem photo comes or goes beside it (a.png
-        beside a.jpg) and when it is edited after being named by its content, so an editing
-        project's reference stays right and no stale copy is left beside a new name."""
-        from kbbatch.images import depth_image_names
-
-        job = self.get(source)
-        if job is None or not job.output or job.output == preferred \
-                or Path(job.output).suffix != Path(preferred).suffix:
-            return None
-        companions = depth_image_names(job.output) if with_depth_images else ()
-        return job.output if self._is_free(job.output, source, content, folder,
-                                           companions) else None
+            number += 1
 
     def _is_free(self, name: str, source: Path, content: str, folder: Path,
                  companions: tuple[str, ...]) -> bool:

@@ -456,9 +456,10 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
-            kept = self.journal.kept_name(path, content, preferred, s.outbox, options.save_depth)
+            previous = self.journal.get(path)
             name = self.journal.clip_name(path, content, preferred, s.outbox, options.save_depth)
-            preferred = kept or preferred  # its own name, kept: nothing to note
+            if previous is not None and previous.output == name:
+                preferred = name  # its own name, kept: nothing to note
             output = s.outbox / name
             if self.journal.is_up_to_date(path, fingerprint, settings, output):
                 inbox.forget(path)

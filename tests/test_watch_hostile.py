@@ -657,19 +657,19 @@ def test_the_daemon_keeps_a_clips_name_when_a_same_stem_photo_arrives(tmp_path):
     """--keep-sources, a.jpg made into a.mp4; a.png dropped beside it later and the daemon
     restarted: a.jpg's clip was made again as a.jpg.mp4 (a copy, and a.mp4 left stale)."""
     inbox, outbox, preset = folders(tmp_path)
+
+    def daemon_until(finished: int, what: str) -> None:
+        daemon = start_daemon(inbox, outbox, preset, "--keep-sources")
+        try:
+            wait_for(lambda: finished_jobs(outbox) == finished, 240, what)
+        finally:
+            assert stop(daemon) == 0
+
     drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
-    daemon = start_daemon(inbox, outbox, preset, "--keep-sources")
-    try:
-        wait_for(lambda: finished_jobs(outbox) == 1, 240, "a.jpg's clip")
-    finally:
-        assert stop(daemon) == 0
+    daemon_until(1, "a.jpg's clip")
     made = (outbox / "a.mp4").read_bytes()
     drop(inbox, "a.png", photo_bytes(tmp_path, 2))
-    daemon = start_daemon(inbox, outbox, preset, "--keep-sources")
-    try:
-        wait_for(lambda: finished_jobs(outbox) == 2, 240, "a.png's clip")
-    finally:
-        assert stop(daemon) == 0
+    daemon_until(2, "a.png's clip")
     assert clips_in(outbox) == ["a.mp4", "a.png.mp4"]
     assert (outbox / "a.mp4").read_bytes() == made
     journal = Journal(outbox)
