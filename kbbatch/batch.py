@@ -379,7 +379,8 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
     from kbbatch.journal import JournalError, source_fingerprint
 
     if job.preferred:
-        result.note = clip_name_note(job.source, job.preferred, job.output.name)
+        named = clip_name_note(job.source, job.preferred, job.output.name)
+        result.note = "; ".join(filter(None, (named, result.note))) or None
     if job.replaces_other_bytes and result.status == "done":
         replaced = (f"{job.source.name} changed since {job.output.name} was made from it: that "
                     "clip is replaced (a photo saved under the name of another is taken for "

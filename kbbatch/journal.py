@@ -260,9 +260,13 @@ class Journal:
         # a same-stem photo comes or goes beside it (a.png beside a.jpg) and through an edit
         # of a photo named by its content, so an editing project's reference stays right and
         # no stale copy is left beside a new name.
+        # Its depth images' names taken by the user's files since do not move it: a second
+        # copy under a new name would be left beside the old one; those images are not
+        # written instead (pipeline.save_depth_images says so).
         job = self.get(source)
         if job is not None and job.output \
-                and Path(job.output).suffix == Path(preferred).suffix and free(job.output):
+                and Path(job.output).suffix == Path(preferred).suffix \
+                and self._is_free(job.output, source, content, folder, ()):
             return job.output
         if free(preferred):
             return preferred

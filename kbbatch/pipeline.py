@@ -556,19 +556,34 @@ def prefetched(items: Iterator, ahead: int) -> Iterator:
 
 
 def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str | None = None
-                      ) -> None:
+                      ) -> list[Path]:
     """A 16-bit disparity PNG (for other tools) and a coloured preview (for people). The map
     records the sha256 of its photo: found beside another photo of its name, it is not taken
-    for that photo's depth (kbbatch.depth.file)."""
-    from kbbatch.images import SOURCE_SHA256_KEY, depth_image_names, write_image
+    for that photo's depth (kbbatch.depth.file). A file of either name that kbbatch did not
+    write is the user's: left as it is and returned (a clip keeps its name through a
+    re-render, so its depth images' names may have been taken since it was first made)."""
+    from kbbatch.images import SOURCE_SHA256_KEY, depth_image_names, is_own_png, write_image
     from kbbatch.review import depth_picture, normalised_disparity
 
     map_name, picture_name = depth_image_names(clip_path.name)
     text = {SOURCE_SHA256_KEY: source_sha256} if source_sha256 else None
-    write_image(clip_path.with_name(map_name),
-                (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16), own=True,
-                text=text)
-    write_image(clip_path.with_name(picture_name), depth_picture(disparity), own=True)
+    images = {clip_path.with_name(map_name):
+              lambda: (normalised_disparity(disparity) * 65535 + 0.5).astype(np.uint16),
+              clip_path.with_name(picture_name): lambda: depth_picture(disparity)}
+    users = []
+    for path, pixels in images.items():
+        if os.path.lexists(path) and not is_own_png(path):
+            users.append(path)
+            continue
+        write_image(path, pixels(), own=True, text=text if path.name == map_name else None)
+    return users
+
+
+def users_files_note(users: list[Path]) -> str:
+    """Why --save-depth left out a depth image."""
+    names = " and ".join(path.name for path in users)
+    return (f"{users[0].parent}: {names} not written with the clip: a file of that name there "
+            "is not kbbatch's and is left as it is")
 
 
 def remove_stale_depth_images(clip_path: Path) -> list[Path]:
@@ -650,7 +665,9 @@ def make_clip(
         if options.save_depth:
             from kbbatch.fingerprint import file_sha256
 
-            save_depth_images(output, prepared.disparity, file_sha256(source))
+            users = save_depth_images(output, prepared.disparity, file_sha256(source))
+            if users:
+                result.note = users_files_note(users)
         result.plan = plan_summary(prepared.plan, photo.shape[1] / prepared.scene.width_px)
         clock = time.perf_counter()
         result.device = frames_device(options.device)

@@ -33,7 +33,13 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from kbbatch.depth.file import find_depth_file
-from kbbatch.images import atomic_output, depth_image_names, disk_full_message, is_disk_full
+from kbbatch.images import (
+    atomic_output,
+    depth_image_names,
+    disk_full_message,
+    is_disk_full,
+    is_own_png,
+)
 from kbbatch.journal import source_fingerprint
 from kbbatch.manifest import ManifestEntry, ManifestError
 from kbbatch.pipeline import (
@@ -46,6 +52,7 @@ from kbbatch.pipeline import (
     make_clip,
     remove_stale_depth_images,
     remove_stale_scratch,
+    users_files_note,
 )
 from kbbatch.presets import Preset
 from kbbatch.settings import env_number
@@ -250,12 +257,18 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
     if result.status != "done":
         return result
     try:
+        users = []
         for name, data in outcome.files.items():
             path = job.output.parent / name
+            if name != job.output.name and os.path.lexists(path) and not is_own_png(path):
+                users.append(path)  # the user's file: never replaced (save_depth_images)
+                continue
             with atomic_output(path, CLIP_SUFFIX if name == job.output.name else path.suffix,
                                make_folder=False) as temp_path:
                 temp_path.write_bytes(data)
         result.output = str(job.output)
+        if users:
+            result.note = users_files_note(users)
         if not set(depth_image_names(job.output.name)) & set(outcome.files):
             remove_stale_depth_images(job.output)  # made again without --save-depth
     except OSError as error:

@@ -565,6 +565,8 @@ class JobRunner:
                 self.move_source(job.path, DONE_FOLDER)
                 log.info("done %s in %.1f s -> %s", job.path.name, result.seconds,
                          result.output)
+                if result.note:
+                    log.warning("%s", result.note)
             elif not job.renamed and self.recently_written(job.path):
                 grace = max(REWRITE_GRACE_S, 5 * self.settings.settle_s)
                 self.suspects[job.path] = Suspect(result, job.fingerprint,

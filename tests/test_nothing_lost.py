@@ -110,16 +110,14 @@ def test_a_second_card_with_the_same_names_never_replaces_a_clip(tmp_path, quick
 
 def test_saved_depth_never_replaces_a_file_kbbatch_did_not_write(tmp_path, quick_preset):
     """A camera card's folder used as the output of another card: its own IMG_1.disparity.png
-    (made by the user) was silently replaced by the other photo's map, on the first render
-    with --save-depth and on one after a render without it (the clip then being kbbatch's)."""
+    (made by the user) was silently replaced by the other photo's map. A new clip is named so
+    that its maps fit beside it."""
     from dataclasses import replace
 
     out = tmp_path / "cardA"
     photo(out / "IMG_1.jpg", seed=1)
     (out / "IMG_1.disparity.png").write_bytes(b"the user's own map")
     photo(tmp_path / "cardB" / "IMG_1.jpg", seed=2)
-    first = run_folder(tmp_path / "cardB", out, quick_preset, FAST, False)
-    assert [Path(r.output).name for r in first.results] == ["IMG_1.mp4"]
     with_maps = replace(FAST, save_depth=True)
     [result] = run_folder(tmp_path / "cardB", out, quick_preset, with_maps, False).results
     assert result.status == "done" and "named by its content" in result.note
@@ -132,6 +130,49 @@ def test_saved_depth_never_replaces_a_file_kbbatch_did_not_write(tmp_path, quick
     again = run_folder(tmp_path / "cardB", out, quick_preset, with_maps, False, force=True)
     assert [r.output for r in again.results] == [str(clip)]
     assert (out / "IMG_1.disparity.png").read_bytes() == b"the user's own map"
+
+
+def test_a_made_clip_keeps_its_name_when_its_depth_maps_name_is_the_users(tmp_path,
+                                                                          quick_preset):
+    """A clip made without --save-depth beside the user's IMG_1.disparity.png, then again with
+    it: the clip moved to a content name and the first IMG_1.mp4 was left beside it, a stale
+    copy of the same photo. It keeps its name; the map the user's file holds the name of is not
+    written, and the run says so."""
+    from dataclasses import replace
+
+    out = tmp_path / "cardA"
+    photo(out / "IMG_1.jpg", seed=1)
+    (out / "IMG_1.disparity.png").write_bytes(b"the user's own map")
+    photo(tmp_path / "cardB" / "IMG_1.jpg", seed=2)
+    first = run_folder(tmp_path / "cardB", out, quick_preset, FAST, False)
+    assert [Path(r.output).name for r in first.results] == ["IMG_1.mp4"]
+    with_maps = replace(FAST, save_depth=True)
+    [result] = run_folder(tmp_path / "cardB", out, quick_preset, with_maps, False).results
+    assert result.status == "done" and Path(result.output).name == "IMG_1.mp4"
+    assert visible_clips(out) == ["IMG_1.mp4"], "a second clip of the photo was left"
+    assert (out / "IMG_1.disparity.png").read_bytes() == b"the user's own map"
+    assert "IMG_1.disparity.png not written" in result.note
+    assert (out / "IMG_1.depth-preview.png").is_file()  # its other name was free
+
+
+def test_ray_driver_never_writes_a_workers_map_over_the_users_file(tmp_path):
+    """A worker makes its files in a folder of its own, so the driver writing them beside the
+    clip is where a user's file of a map's name would be replaced."""
+    from kbbatch.pipeline import ClipJob, ClipResult
+    from kbbatch.ray_executor import WorkerOutcome, write_outcome
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "IMG_1.disparity.png").write_bytes(b"the user's own map")
+    job = ClipJob(photo(tmp_path / "in" / "IMG_1.jpg", seed=1), out / "IMG_1.mp4", None, "")
+    files = {"IMG_1.mp4": b"clip", "IMG_1.disparity.png": b"map",
+             "IMG_1.depth-preview.png": b"picture"}
+    outcome = WorkerOutcome(ClipResult(str(job.source), "x", "done", 1.0), files, "node", 1)
+    result = write_outcome(job, outcome)
+    assert result.status == "done" and (out / "IMG_1.mp4").read_bytes() == b"clip"
+    assert (out / "IMG_1.disparity.png").read_bytes() == b"the user's own map"
+    assert (out / "IMG_1.depth-preview.png").read_bytes() == b"picture"
+    assert "IMG_1.disparity.png not written" in result.note
 
 
 def test_a_manifest_entrys_preset_file_is_found_beside_the_manifest_and_is_an_input(
