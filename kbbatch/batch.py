@@ -357,7 +357,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
-        previous = journal.get(source)
+        previous = journal.get(source) or journal.adopt_other_spelling(source, content)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):

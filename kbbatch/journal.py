@@ -199,6 +199,27 @@ class Journal:
                                     (_stored(destination), _stored(source)))
 
     @_guarded
+    def adopt_other_spelling(self, source: Path, content: str) -> Job | None:
+        """The job of this very photo recorded under another spelling of its folder (through
+        a symlink, a bind mount, `..`), moved to this spelling and returned; None if there is
+        none. Without it a folder run by two spellings made every clip again at each switch.
+        The bytes must match too: a link since pointed at another folder holds other photos
+        of the same names, whose clips are not this photo's."""
+        for job in self._select("WHERE content = ? AND source != ?",
+                                (content, _stored(source))):
+            other = Path(job.source)
+            if other.name != source.name:
+                continue
+            try:
+                same = os.path.samefile(other.parent, source.parent)
+            except OSError:  # that spelling leads nowhere now
+                continue
+            if same:
+                self.moved(other, source)
+                return self.get(source)
+        return None
+
+    @_guarded
     def photo_gone(self, source: Path, folder: Path) -> None:
         """An unfinished job whose photo was deleted: nothing is left to make. A clip of an
         earlier make still at its name stays the photo's (done, with settings unknown, so the

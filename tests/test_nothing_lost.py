@@ -860,3 +860,30 @@ def test_an_output_folder_removed_mid_run_stops_the_run_and_is_not_made_again(tm
     assert returncode == 1, stderr
     assert f"{out}: removed or renamed during the run; stopped" in stderr
     assert not out.exists()
+
+
+def test_a_folder_run_by_two_spellings_is_not_made_again(tmp_path, quick_preset):
+    """Photos run once as `photos/` and once through a link to it (a home-folder link to a
+    share, a bind mount): the journal keyed the clips by the first spelling, so the second
+    made every clip again, and switching back made them all once more. The link then pointed
+    at another card, whose photo has the same name and other bytes: that photo is no spelling
+    of the first and gets a clip of its own."""
+    real = tmp_path / "photos"
+    photo(real / "IMG_1.jpg", seed=1)
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    out = tmp_path / "out"
+    [first] = run_folder(real, out, quick_preset, FAST, False).results
+    assert first.status == "done"
+    made = (out / "IMG_1.mp4").stat().st_mtime_ns
+    for folder in (link, real):
+        [again] = run_folder(folder, out, quick_preset, FAST, False).results
+        assert again.status == "skipped", f"made again through {folder.name}"
+    assert (out / "IMG_1.mp4").stat().st_mtime_ns == made
+    other = tmp_path / "card2"
+    photo(other / "IMG_1.jpg", seed=2)
+    link.unlink()
+    link.symlink_to(other, target_is_directory=True)
+    [second] = run_folder(link, out, quick_preset, FAST, False).results
+    assert second.status == "done" and Path(second.output).name != "IMG_1.mp4"
+    assert (out / "IMG_1.mp4").stat().st_mtime_ns == made, "the first card's clip was replaced"
