@@ -34,6 +34,7 @@ from kbbatch.outputs import (
     folder_identity,
     output_names,
     remove_partial_clips,
+    replaced_clip_note,
 )
 from kbbatch.pipeline import (
     CLIP_SUFFIX,
@@ -208,7 +209,7 @@ def run_folder(
     and the journal says which photos are left. Naming, the journal, the lock and the report
     stay here; the executor only makes clips (here, or on a cluster).
     """
-    from kbbatch.journal import FolderLock, Journal, JournalError
+    from kbbatch.journal import FolderLock, Journal, JournalError, photo_key
 
     executor = executor or LocalExecutor()
     remove_stale_scratch()
@@ -269,10 +270,10 @@ def run_folder(
                 return
             entry = manifest.entry(photo.name) if manifest else None
             if entry is not None and entry.excluded:
-                results.append(ClipResult(str(photo.absolute()), None, "excluded", 0.0))
+                results.append(ClipResult(str(photo_key(photo)), None, "excluded", 0.0))
                 bar.update()
                 continue
-            job = start_job(journal, photo.absolute(), output_folder, names[photo], preset,
+            job = start_job(journal, photo_key(photo), output_folder, names[photo], preset,
                             options, entry, force)
             if isinstance(job, ClipResult):  # skipped, or failed before it could start
                 results.append(job)
@@ -332,7 +333,9 @@ def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
     """Unfinished jobs of this folder's photos that were deleted since: nothing is left to
     make of them, and kept queued they showed in `kbbatch status` for ever (Journal.photo_gone).
     Another folder's jobs are left alone: its card may only be out of the reader."""
-    folder = folder.absolute()
+    from kbbatch.journal import folder_key
+
+    folder = folder_key(folder)
     for state in ("queued", "running"):
         for job in journal.jobs(state):
             source = Path(job.source)
@@ -357,7 +360,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
-        previous = journal.get(source) or journal.adopt_other_spelling(source, content)
+        previous = journal.job_of(source, content)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
@@ -382,9 +385,7 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         named = clip_name_note(job.source, job.preferred, job.output.name)
         result.note = "; ".join(filter(None, (named, result.note))) or None
     if job.replaces_other_bytes and result.status == "done":
-        replaced = (f"{job.source.name} changed since {job.output.name} was made from it: that "
-                    "clip is replaced (a photo saved under the name of another is taken for "
-                    "an edit of it)")
+        replaced = replaced_clip_note(job.source, job.output.name)
         result.note = f"{result.note}; {replaced}" if result.note else replaced
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None

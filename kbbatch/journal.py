@@ -8,6 +8,7 @@ name is never given to a second, different photo. Jobs are keyed by the photo's 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sqlite3
 import time
@@ -30,6 +31,20 @@ UNDECODABLE_PREFIX = "//bytes:"
 """Marks a stored path or clip name whose bytes are not UTF-8 (a Latin-1 name from a zip file):
 SQLite keeps only UTF-8 text, so such a name is stored percent-encoded after this prefix, which
 no resolved absolute path and no file name can begin with."""
+
+
+def photo_key(photo: Path) -> Path:
+    """The path a photo's job is kept under: its folder as the file system resolves it
+    (links and `..` followed), then its own name (a linked photo stays itself). By the path
+    as typed, a folder run through a link and by its own name was two folders (every clip
+    made again at each switch), and a link moved to another card made that card's photos
+    edits of the first card's, replacing their clips."""
+    return folder_key(photo.parent) / photo.name
+
+
+def folder_key(folder: Path) -> Path:
+    """A photo folder as the journal's keys name it (photo_key)."""
+    return Path(os.path.realpath(folder))
 
 
 def _stored(name: str | Path | None) -> str | None:
@@ -132,6 +147,11 @@ class Journal:
         for name, kind in COLUMNS:  # journals written by earlier versions
             if name not in present:
                 self.connection.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
+        # looked up per photo (Journal.owners, Journal.job_of): a scan each in a large journal;
+        # only a speed-up, so a full disk that cannot take it is no reason to stop
+        with contextlib.suppress(sqlite3.OperationalError):
+            self.connection.execute("CREATE INDEX IF NOT EXISTS jobs_output ON jobs (output)")
+            self.connection.execute("CREATE INDEX IF NOT EXISTS jobs_content ON jobs (content)")
 
     def _read_only_connection(self) -> sqlite3.Connection:
         uri = self.path.absolute().as_uri()
@@ -199,12 +219,14 @@ class Journal:
                                     (_stored(destination), _stored(source)))
 
     @_guarded
-    def adopt_other_spelling(self, source: Path, content: str) -> Job | None:
-        """The job of this very photo recorded under another spelling of its folder (through
-        a symlink, a bind mount, `..`), moved to this spelling and returned; None if there is
-        none. Without it a folder run by two spellings made every clip again at each switch.
-        The bytes must match too: a link since pointed at another folder holds other photos
-        of the same names, whose clips are not this photo's."""
+    def job_of(self, source: Path, content: str) -> Job | None:
+        """This photo's job, with its records under other spellings of its folder (through a
+        link, a bind mount, a journal of a version that kept paths as typed) settled: the
+        latest one kept under this path, the rest dropped. Without it a folder run by two
+        spellings made every clip again at each switch. Only records of the same bytes count:
+        a link since pointed at another card holds other photos of the same names, whose
+        clips are not this photo's."""
+        own = self.get(source)
         for job in self._select("WHERE content = ? AND source != ?",
                                 (content, _stored(source))):
             other = Path(job.source)
@@ -214,10 +236,14 @@ class Journal:
                 same = os.path.samefile(other.parent, source.parent)
             except OSError:  # that spelling leads nowhere now
                 continue
-            if same:
+            if not same:
+                continue
+            if own is None or job.updated > own.updated:
                 self.moved(other, source)
-                return self.get(source)
-        return None
+                own = self.get(source)
+            else:
+                self.forget(other)
+        return own
 
     @_guarded
     def photo_gone(self, source: Path, folder: Path) -> None:

@@ -74,6 +74,13 @@ def remove_partial_clips(folder: Path) -> list[Path]:
     return removed
 
 
+def replaced_clip_note(source: Path, name: str) -> str:
+    """Said when a photo's bytes changed since its clip was made: the clip is replaced (one
+    import folder for every card also brings another photo under a used name)."""
+    return (f"{source.name} changed since {name} was made from it: that clip is replaced (a "
+            "photo saved under the name of another is taken for an edit of it)")
+
+
 def clip_name_note(source: Path, preferred: str, name: str) -> str | None:
     if name == preferred:
         return None

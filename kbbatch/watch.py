@@ -47,6 +47,7 @@ from kbbatch.journal import (
     FolderLock,
     Journal,
     JournalError,
+    folder_key,
     source_fingerprint,
 )
 from kbbatch.manifest import (
@@ -63,6 +64,7 @@ from kbbatch.outputs import (
     folder_identity,
     output_names,
     remove_partial_clips,
+    replaced_clip_note,
 )
 from kbbatch.pipeline import (
     ClipOptions,
@@ -456,7 +458,7 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
-            previous = self.journal.get(path)
+            previous = self.journal.job_of(path, content)
             name = self.journal.clip_name(path, content, preferred, s.outbox, options.save_depth)
             if previous is not None and previous.output == name:
                 preferred = name  # its own name, kept: nothing to note
@@ -471,6 +473,9 @@ class JobRunner:
             note = clip_name_note(path, preferred, name)
             if note is not None:
                 log.warning("%s", note)
+            if previous is not None and previous.state == "done" and previous.output == name \
+                    and previous.content not in (None, content) and output.is_file():
+                log.warning("%s", replaced_clip_note(path, name))
             log.info("start %s", path.name)
             try:
                 future = self.pool.submit(_render, path, output, s.preset, options, entry)
@@ -726,8 +731,8 @@ class Daemon:
     hands settled photos to the job runner."""
 
     def __init__(self, settings: WatchSettings) -> None:
-        # absolute: the journal keys jobs by the photo's path
-        settings = replace(settings, inbox=settings.inbox.absolute(),
+        # resolved: the journal keys jobs by the photo's path (journal.photo_key)
+        settings = replace(settings, inbox=folder_key(settings.inbox),
                            outbox=settings.outbox.absolute())
         self.settings = settings
         self.stopping = threading.Event()

@@ -887,3 +887,109 @@ def test_a_folder_run_by_two_spellings_is_not_made_again(tmp_path, quick_preset)
     [second] = run_folder(link, out, quick_preset, FAST, False).results
     assert second.status == "done" and Path(second.output).name != "IMG_1.mp4"
     assert (out / "IMG_1.mp4").stat().st_mtime_ns == made, "the first card's clip was replaced"
+
+
+def test_an_edit_seen_through_another_spelling_replaces_its_clip_in_place(tmp_path,
+                                                                         quick_preset):
+    """A photo edited in place, then run through a link to its folder, was taken for a new
+    photo: a second clip under a content name beside the old one, and a note calling the old
+    one another photo's."""
+    real = tmp_path / "photos"
+    photo(real / "a.jpg", seed=1)
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    out = tmp_path / "out"
+    run_folder(real, out, quick_preset, FAST, False)
+    photo(real / "a.jpg", seed=21)  # edited in place
+    [result] = run_folder(link, out, quick_preset, FAST, False).results
+    assert result.status == "done" and Path(result.output).name == "a.mp4"
+    assert "changed since a.mp4 was made" in result.note
+    assert visible_clips(out) == ["a.mp4"]
+    journal = Journal(out)
+    try:
+        assert len(journal.jobs()) == 1
+    finally:
+        journal.close()
+
+
+def test_a_link_moved_to_another_card_keeps_the_first_cards_clips(tmp_path, quick_preset):
+    """A fixed path (a link, a card's mount point) moved from one card to another with the
+    same file names: the second card's IMG_1.jpg was taken for an edit of the first card's,
+    whose clip it replaced."""
+    for card, seed in (("card1", 1), ("card2", 31)):
+        photo(tmp_path / card / "IMG_1.jpg", seed=seed)
+    link = tmp_path / "SDCARD"
+    link.symlink_to(tmp_path / "card1", target_is_directory=True)
+    out = tmp_path / "out"
+    [first] = run_folder(link, out, quick_preset, FAST, False).results
+    made = (out / "IMG_1.mp4").stat().st_mtime_ns
+    link.unlink()
+    link.symlink_to(tmp_path / "card2", target_is_directory=True)
+    [second] = run_folder(link, out, quick_preset, FAST, False).results
+    assert second.status == "done" and Path(second.output).name != "IMG_1.mp4"
+    assert (out / "IMG_1.mp4").stat().st_mtime_ns == made, "the first card's clip was replaced"
+    assert len(visible_clips(out)) == 2
+
+
+def test_the_daemon_through_a_link_to_its_inbox_does_not_make_its_clips_again(tmp_path):
+    """The daemon started once on a link to its inbox, once on the inbox itself, made every
+    clip again (and left jobs under the other spelling)."""
+    from .test_watch import finished_jobs, preset_file, start_daemon, stop
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    photo(inbox / "a.jpg", seed=1)
+    link = tmp_path / "link"
+    link.symlink_to(inbox, target_is_directory=True)
+    preset = preset_file(tmp_path, 0.6)
+    log_path = tmp_path / "daemon.log"
+    daemon = start_daemon(link, outbox, preset, "--keep-sources", log_path=log_path)
+    try:
+        wait_for(lambda: finished_jobs(outbox) == 1, 120, "the clip through the link")
+    finally:
+        assert stop(daemon) == 0
+    made = (outbox / "a.mp4").stat().st_mtime_ns
+    log_path.write_bytes(b"")
+    daemon = start_daemon(inbox, outbox, preset, "--keep-sources", log_path=log_path)
+    try:
+        wait_for(lambda: "already complete" in log_path.read_text(), 120,
+                 "the daemon to find the clip made")
+    finally:
+        assert stop(daemon) == 0
+    assert (outbox / "a.mp4").stat().st_mtime_ns == made, "the clip was made again"
+    journal = Journal(outbox)
+    try:
+        assert [Path(job.source).parent for job in journal.jobs()] == [inbox]
+    finally:
+        journal.close()
+
+
+def test_a_journal_with_a_photo_under_two_spellings_settles_on_one(tmp_path, quick_preset):
+    """A journal of a version that kept paths as typed, after runs through a link and by the
+    folder's own name, holds one job per spelling, each claiming the clip: every switch made
+    it again, and `status` counted the photo twice. The latest record is kept, the other
+    dropped, and nothing is made again."""
+    real = tmp_path / "photos"
+    photo(real / "a.jpg", seed=1)
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    out = tmp_path / "out"
+    run_folder(real, out, quick_preset, FAST, False)
+    made = (out / "a.mp4").stat().st_mtime_ns
+    journal = Journal(out)
+    try:  # the same record under the link's spelling, as the earlier version left it
+        journal.connection.execute(
+            "INSERT INTO jobs SELECT ?, fingerprint, settings, state, output, error, attempts,"
+            " seconds, updated + 1, content, clip FROM jobs WHERE source = ?",
+            (str(link / "a.jpg"), str(real / "a.jpg")))
+        assert len(journal.jobs()) == 2
+    finally:
+        journal.close()
+    for folder in (link, real):
+        [again] = run_folder(folder, out, quick_preset, FAST, False).results
+        assert again.status == "skipped", f"made again through {folder.name}"
+    assert (out / "a.mp4").stat().st_mtime_ns == made
+    journal = Journal(out)
+    try:
+        assert [job.source for job in journal.jobs()] == [str(real / "a.jpg")]
+    finally:
+        journal.close()
