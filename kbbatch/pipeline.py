@@ -662,12 +662,6 @@ def make_clip(
         prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
         result.risk = prepared.risk.summary() if prepared.risk else None
-        if options.save_depth:
-            from kbbatch.fingerprint import file_sha256
-
-            users = save_depth_images(output, prepared.disparity, file_sha256(source))
-            if users:
-                result.note = users_files_note(users)
         result.plan = plan_summary(prepared.plan, photo.shape[1] / prepared.scene.width_px)
         clock = time.perf_counter()
         result.device = frames_device(options.device)
@@ -678,10 +672,18 @@ def make_clip(
             with atomic_output(output, CLIP_SUFFIX, make_folder=False) as temp_path:
                 result.frames = encode_frames(temp_path, frames, preset)
         timings["frames+encode"] = time.perf_counter() - clock
+        # The depth images after the clip: written first, a run killed mid-encode left the new
+        # photo's maps beside no clip (or beside the old photo's clip).
+        if options.save_depth:
+            from kbbatch.fingerprint import file_sha256
+
+            users = save_depth_images(output, prepared.disparity, file_sha256(source))
+            if users:
+                result.note = users_files_note(users)
+        else:
+            remove_stale_depth_images(output)
         result.output = str(output)
         result.status = "done"
-        if not options.save_depth:
-            remove_stale_depth_images(output)
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
             DeviceError) as error:
         result.error = str(error)

@@ -258,7 +258,8 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
         return result
     try:
         users = []
-        for name, data in outcome.files.items():
+        # the clip first, its depth images after (as make_clip writes them)
+        for name, data in sorted(outcome.files.items(), key=lambda f: f[0] != job.output.name):
             path = job.output.parent / name
             if name != job.output.name and os.path.lexists(path) and not is_own_png(path):
                 users.append(path)  # the user's file: never replaced (save_depth_images)

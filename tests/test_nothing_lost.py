@@ -4,6 +4,7 @@ is overwritten, and every case says what happened."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import resource
@@ -993,3 +994,30 @@ def test_a_journal_with_a_photo_under_two_spellings_settles_on_one(tmp_path, qui
         assert [job.source for job in journal.jobs()] == [str(real / "a.jpg")]
     finally:
         journal.close()
+
+
+def test_a_run_killed_mid_encode_leaves_no_depth_maps_of_a_clip_not_made(tmp_path,
+                                                                          quick_preset):
+    """--save-depth wrote a photo's maps before its clip: a run killed mid-encode left the
+    new maps beside no clip (or, after an edit, beside the old photo's clip)."""
+    from .test_watch import held_encoders
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    run = subprocess.Popen([*CLI, str(folder), "-o", str(out), "--quiet", "--save-depth",
+                            *FAST_CLI], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        encoders = held_encoders(out, "a")
+        assert not list(out.glob("a.*.png")), "maps written before the clip"
+    finally:
+        run.kill()
+        run.wait(timeout=60)
+    for pid in encoders:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    assert not list(out.glob("a.*.png")) and not (out / "a.mp4").exists()
+    [result] = run_folder(folder, out, quick_preset, replace(FAST, save_depth=True),
+                          False).results
+    assert result.status == "done"
+    assert sorted(p.name for p in out.glob("a.*.png")) == ["a.depth-preview.png",
+                                                             "a.disparity.png"]
