@@ -209,13 +209,16 @@ def run_folder(
     and the journal says which photos are left. Naming, the journal, the lock and the report
     stay here; the executor only makes clips (here, or on a cluster).
     """
-    from kbbatch.journal import FolderLock, Journal, JournalError, photo_key
+    from kbbatch.journal import FolderLock, Journal, JournalError, folder_key, photo_key
 
     executor = executor or LocalExecutor()
     remove_stale_scratch()
-    output_folder = output_folder.absolute()
+    # Both as the file system finds them (journal.photo_key): `-o x/../out` through a link
+    # x, or an output folder inside the photo folder reached through a link, is where the
+    # kernel puts it.
+    output_folder = folder_key(output_folder)
     scan = scan_folder(folder, ignore=(output_folder.name,)
-                       if output_folder.parent == folder.absolute() else ())
+                       if output_folder.parent == folder_key(folder) else ())
     maps = {photo: manifest.depth_map_of(photo) for photo in scan.photos} if manifest else {}
     scan = replace(scan, photos=[photo for photo in scan.photos if not maps.get(photo)])
     missing = (manifest.unmatched_images({photo.name for photo in scan.photos})
@@ -308,7 +311,7 @@ def run_folder(
                 results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
         journal.close()
         # the folder as it is found again: 'photos/../out' named no folder a user would look in
-        report = RunReport(str(folder.absolute()), str(output_folder.resolve()), preset.name,
+        report = RunReport(str(folder_key(folder)), str(output_folder), preset.name,
                            results, notes, stop.get("by"), options.device, providers_used())
         if folder_identity(output_folder) != identity:  # not made again: the user's doing
             lock.release()
@@ -333,13 +336,13 @@ def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
     """Unfinished jobs of this folder's photos that were deleted since: nothing is left to
     make of them, and kept queued they showed in `kbbatch status` for ever (Journal.photo_gone).
     Another folder's jobs are left alone: its card may only be out of the reader."""
-    from kbbatch.journal import folder_key
+    from kbbatch.journal import folder_key, in_folder
 
     folder = folder_key(folder)
     for state in ("queued", "running"):
         for job in journal.jobs(state):
             source = Path(job.source)
-            if source.parent == folder and not os.path.lexists(source):
+            if in_folder(source, folder) and not os.path.lexists(source):
                 journal.photo_gone(source, output_folder)
 
 

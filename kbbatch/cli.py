@@ -559,7 +559,9 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     from kbbatch.watch import watch as run_daemon
 
     _log_to_terminal(logging.INFO, TIMED_LOG_FORMAT)
-    if inbox.resolve() == outbox.resolve():  # its lock is the output folder's: a busy error
+    # its lock is the output folder's: a busy error (realpath: a link in a loop is the
+    # daemon's to refuse, not a traceback here)
+    if os.path.realpath(inbox) == os.path.realpath(outbox):
         raise click.UsageError(f"{outbox}: --out must be a folder other than the inbox")
     local_jobs_max = _most_per_machine()
     if jobs is not None and jobs > local_jobs_max and shared.get("executor_name") != "ray":

@@ -47,6 +47,17 @@ def folder_key(folder: Path) -> Path:
     return Path(os.path.realpath(folder))
 
 
+def in_folder(source: Path, folder: Path) -> bool:
+    """Whether a job's photo lies in this folder (its key), also by another spelling: a
+    journal of an earlier version kept the folder as typed (through a link)."""
+    if source.parent == folder:
+        return True
+    try:
+        return os.path.samefile(source.parent, folder)
+    except OSError:  # that spelling leads nowhere now
+        return False
+
+
 def _stored(name: str | Path | None) -> str | None:
     """A path or file name as the journal keeps it (reversibly, see UNDECODABLE_PREFIX)."""
     if name is None:

@@ -48,6 +48,7 @@ from kbbatch.journal import (
     Journal,
     JournalError,
     folder_key,
+    in_folder,
     source_fingerprint,
 )
 from kbbatch.manifest import (
@@ -97,6 +98,7 @@ class WatchSettings:
     settle_s: float = 2.0
     keep_sources: bool = False
     executor: RayExecutor | None = None  # None: --jobs processes on this machine
+    inbox_as_given: Path | None = None  # before links were followed (Daemon.run)
 
 
 def is_candidate(path: Path) -> bool:
@@ -223,6 +225,7 @@ class InFlight:
     output: str
     preferred: str
     renamed: bool
+    replaces: bool = False  # its clip replaces one made from the photo's earlier bytes
 
 
 @dataclass(frozen=True)
@@ -367,8 +370,11 @@ class JobRunner:
         self.space_wanted: tuple[Path, int, float | None] | None = None  # after a full disk
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
         self.manifest = ManifestFollower(settings.manifest)
+        # the inbox as given too: a link to it pointed elsewhere leaves the folder watched
+        # unused, as a removed one would
         self.identities = {folder: folder_identity(folder)
-                           for folder in (settings.inbox, settings.outbox)}
+                           for folder in (settings.inbox, settings.inbox_as_given,
+                                          settings.outbox) if folder is not None}
 
     def folders_gone(self) -> str | None:
         """The inbox or the output folder removed, renamed or made again since the start: the
@@ -376,7 +382,7 @@ class JobRunner:
         its clip found no output folder."""
         for folder, identity in self.identities.items():
             if folder_identity(folder) != identity:
-                which = "inbox" if folder == self.settings.inbox else "output folder"
+                which = ("output folder" if folder == self.settings.outbox else "inbox")
                 return f"{folder}: the {which} was removed, renamed or made again"
         return None
 
@@ -390,7 +396,7 @@ class JobRunner:
         for job in self.journal.jobs("running"):
             source = Path(job.source)
             output = s.outbox / job.output if job.output else None
-            if source.parent == s.inbox and not os.path.lexists(source):
+            if in_folder(source, s.inbox) and not os.path.lexists(source):
                 # deleted while no daemon ran: nothing to resume (a batch's photo elsewhere
                 # may only be on a card out of the reader: left alone)
                 self.journal.photo_gone(source, s.outbox)
@@ -473,9 +479,9 @@ class JobRunner:
             note = clip_name_note(path, preferred, name)
             if note is not None:
                 log.warning("%s", note)
-            if previous is not None and previous.state == "done" and previous.output == name \
-                    and previous.content not in (None, content) and output.is_file():
-                log.warning("%s", replaced_clip_note(path, name))
+            replaces = (previous is not None and previous.state == "done"
+                        and previous.output == name and previous.content not in (None, content)
+                        and output.is_file())
             log.info("start %s", path.name)
             try:
                 future = self.pool.submit(_render, path, output, s.preset, options, entry)
@@ -483,7 +489,8 @@ class JobRunner:
                 self.journal.finish(path, "queued", 0.0, "worker pool broken; retrying")
                 self.requeue(path, True)
                 return
-            self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed)
+            self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed,
+                                              replaces)
 
     def preferred_name(self, source: Path) -> str:
         """The batch's rule (outputs.output_names) over the photos in the inbox now."""
@@ -572,6 +579,8 @@ class JobRunner:
                          result.output)
                 if result.note:
                     log.warning("%s", result.note)
+                if job.replaces:
+                    log.warning("%s", replaced_clip_note(job.path, job.output))
             elif not job.renamed and self.recently_written(job.path):
                 grace = max(REWRITE_GRACE_S, 5 * self.settings.settle_s)
                 self.suspects[job.path] = Suspect(result, job.fingerprint,
@@ -731,12 +740,11 @@ class Daemon:
     hands settled photos to the job runner."""
 
     def __init__(self, settings: WatchSettings) -> None:
-        # resolved: the journal keys jobs by the photo's path (journal.photo_key)
-        settings = replace(settings, inbox=folder_key(settings.inbox),
+        settings = replace(settings, inbox=settings.inbox.absolute(),
                            outbox=settings.outbox.absolute())
         self.settings = settings
         self.stopping = threading.Event()
-        self.inbox = InboxTracker(settings.inbox, settings.settle_s)
+        self.inbox: InboxTracker | None = None
         self.jobs: JobRunner | None = None
 
     def request_stop(self, *_: object) -> None:
@@ -758,6 +766,12 @@ class Daemon:
         if not s.inbox.is_dir():
             s.inbox.mkdir(exist_ok=True)
             log.info("made the inbox %s", s.inbox)
+        # Checked as given (a dangling link is no inbox to make), then followed: the journal
+        # keys jobs by the photo's folder resolved (journal.photo_key).
+        resolved = folder_key(s.inbox)
+        if resolved != s.inbox:
+            s = self.settings = replace(s, inbox=resolved, inbox_as_given=s.inbox)
+        self.inbox = InboxTracker(s.inbox, s.settle_s)
         for name in (DONE_FOLDER, FAILED_FOLDER):  # else a traceback after the first clip
             where = s.inbox / name
             if (where.exists() or where.is_symlink()) and not where.is_dir():

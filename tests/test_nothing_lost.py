@@ -1021,3 +1021,31 @@ def test_a_run_killed_mid_encode_leaves_no_depth_maps_of_a_clip_not_made(tmp_pat
     assert result.status == "done"
     assert sorted(p.name for p in out.glob("a.*.png")) == ["a.depth-preview.png",
                                                              "a.disparity.png"]
+
+
+def test_a_deleted_photos_job_under_an_earlier_spelling_is_settled(tmp_path, quick_preset):
+    """A journal of an earlier version keeps a killed run's job under the link it was run
+    through; the photo deleted, the next run by the folder's own name compared the job's
+    folder as text and left it queued for ever. The report names folders as resolved, as it
+    names the photos."""
+    real = tmp_path / "photos"
+    photo(real / "a.jpg", seed=1)
+    photo(real / "b.jpg", seed=2)
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    out = tmp_path / "out"
+    journal = Journal(out)
+    try:  # as the earlier version left it: running, keyed through the link
+        journal.start(link / "b.jpg", "fingerprint", "settings", "b.mp4", "content")
+    finally:
+        journal.close()
+    (real / "b.jpg").unlink()
+    report = run_folder(link, out, quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["done"]
+    assert report.folder == str(real)
+    assert [r.source for r in report.results] == [str(real / "a.jpg")]
+    journal = Journal(out)
+    try:
+        assert [job.source for job in journal.jobs()] == [str(real / "a.jpg")]
+    finally:
+        journal.close()

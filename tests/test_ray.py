@@ -8,6 +8,7 @@ import contextlib
 import json
 import os
 import re
+import shlex
 import shutil
 import signal
 import socket
@@ -291,29 +292,27 @@ def test_with_a_shared_file_system_only_paths_travel_and_the_clips_equal_the_loc
 
 def test_with_ray_shared_fs_a_photo_the_workers_cannot_see_fails_naming_node_and_path(
         cluster, photo_folder, tmp_path):
-    """The photo's folder is /proc/self/fd/N, a directory the driver holds open: the driver
-    lists and reads it, and on every worker that path names nothing (as a folder on the
-    driver's machine alone would)."""
+    """The photo's folder is a file system mounted in the driver's own mount namespace (as a
+    disk mounted on the driver's machine alone would be): the driver lists and reads it, and
+    on every worker that folder is empty. (It was /proc/self/fd/N, a directory the driver
+    held open; the journal now keys photos by their folder resolved, which that is not.)"""
     folder = tmp_path / "driver-only"
     folder.mkdir()
     photo = sorted(photo_folder.iterdir())[0]
-    (folder / photo.name).write_bytes(photo.read_bytes())
-    handle = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        fd = DRIVER_ONLY_FD
-        os.dup2(handle, fd)
-        seen_by_driver = Path(f"/proc/self/fd/{fd}")
-        env = dict(cluster.env, RAY_ADDRESS=cluster.address)
-        done = subprocess.run(kbbatch_command(seen_by_driver, tmp_path / "out", "--ray-shared-fs"),
-                              env=env, capture_output=True, text=True, timeout=150,
-                              pass_fds=(fd,))
-    finally:
-        os.close(handle)
-        with contextlib.suppress(OSError):
-            os.close(DRIVER_ONLY_FD)
+    inside = " ".join(shlex.quote(part) for part in kbbatch_command(
+        folder, tmp_path / "out", "--ray-shared-fs"))
+    script = (f"mount -t tmpfs tmpfs {shlex.quote(str(folder))} && "
+              f"cp {shlex.quote(str(photo))} {shlex.quote(str(folder))}/ && exec {inside}")
+    env = dict(cluster.env, RAY_ADDRESS=cluster.address)
+    probe = subprocess.run(["unshare", "--mount", "--propagation", "private", "true"],
+                           capture_output=True, text=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no mount namespace of its own here: {probe.stderr.strip()}")
+    done = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", script],
+                          env=env, capture_output=True, text=True, timeout=150)
 
     assert done.returncode == 1, done.stderr
-    path = f"{seen_by_driver}/{photo.name}"
+    path = f"{folder}/{photo.name}"
     assert re.search(rf"{re.escape(path)}: not found on Ray node \S+ \(id [0-9a-f]{{12}}\)",
                      done.stderr), done.stderr
     assert "--ray-shared-fs needs the photos" in done.stderr
@@ -321,11 +320,7 @@ def test_with_ray_shared_fs_a_photo_the_workers_cannot_see_fails_naming_node_and
     assert [(c["source"], c["status"]) for c in report["clips"]] == [(path, "failed")]
     assert not list((tmp_path / "out").glob("*.mp4"))
     assert journal_rows(tmp_path / "out") == {photo.name: ("failed", 1)}
-
-
-DRIVER_ONLY_FD = 217
-"""A descriptor number no Ray worker is likely to hold (if one did, as a non-directory, the
-path still names nothing there)."""
+    assert not list(folder.iterdir()), "the driver's mount was seen outside its namespace"
 
 
 def done_clips(output: Path) -> set[str]:

@@ -677,3 +677,68 @@ def test_the_daemon_keeps_a_clips_name_when_a_same_stem_photo_arrives(tmp_path):
         assert journal.get(inbox / "a.jpg").attempts == 1
     finally:
         journal.close()
+
+
+def test_an_inbox_link_pointed_elsewhere_stops_the_daemon(tmp_path):
+    """The daemon follows a link to its inbox (its journal keys the real folder): pointed at
+    another folder while it ran, the link left the daemon watching a folder nobody used,
+    without a word."""
+    inbox, outbox, preset = folders(tmp_path)
+    link = tmp_path / "link"
+    link.symlink_to(inbox, target_is_directory=True)
+    other = tmp_path / "other"
+    other.mkdir()
+    daemon = start_daemon(link, outbox, preset)
+    try:
+        wait_for(lambda: "watching" in daemon_log(tmp_path), 60, "the daemon to start")
+        link.unlink()
+        link.symlink_to(other, target_is_directory=True)
+        drop(other, "a.jpg", photo_bytes(tmp_path, 1))
+        daemon.wait(timeout=120)
+    finally:
+        if daemon.poll() is None:
+            stop(daemon)
+    log = daemon_log(tmp_path)
+    assert daemon.returncode == 1, log
+    assert f"{link}: the inbox was removed, renamed or made again" in log, log
+
+
+def test_a_dangling_inbox_link_is_refused_not_made(tmp_path):
+    """A link to a share not mounted yet: the daemon made the folder the link names on the
+    local disk, under the mount point, which the share then hid."""
+    link = tmp_path / "inbox"
+    link.symlink_to(tmp_path / "mnt" / "inbox")
+    (tmp_path / "mnt").mkdir()
+    run = subprocess.run([*CLI, "watch", str(link), "--out", str(tmp_path / "out"), "--depth",
+                          "ramp"], capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0 and "the inbox is not a folder" in run.stderr, run.stderr
+    assert not (tmp_path / "mnt" / "inbox").exists()
+
+
+def test_a_link_in_a_loop_as_inbox_is_an_error_not_a_traceback(tmp_path):
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    run = subprocess.run([*CLI, "watch", str(loop), "--out", str(tmp_path / "out"), "--depth",
+                          "ramp"], capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0 and "Traceback" not in run.stderr, run.stderr
+    assert str(loop) in run.stderr
+
+
+def test_the_daemon_says_a_clip_is_replaced_only_once_it_is(tmp_path):
+    """A photo rewritten with a truncated file: the daemon said its clip was replaced when it
+    took the photo, then failed it, the old clip untouched."""
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset, "--keep-sources")
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "a.jpg")
+        made = (outbox / "a.mp4").stat().st_mtime_ns
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 2)[:3000])
+        wait_for(lambda: "failed a.jpg" in daemon_log(tmp_path)
+                 or (inbox / "failed" / "a.jpg").exists(), 240, "the truncated photo to fail")
+        drop(inbox, "b.jpg", photo_bytes(tmp_path, 3))
+        wait_for(lambda: (outbox / "b.mp4").is_file(), 240, "b.jpg")
+    finally:
+        assert stop(daemon) == 0
+    assert (outbox / "a.mp4").stat().st_mtime_ns == made
+    assert "changed since a.mp4 was made" not in daemon_log(tmp_path)
