@@ -1049,3 +1049,16 @@ def test_a_deleted_photos_job_under_an_earlier_spelling_is_settled(tmp_path, qui
         assert [job.source for job in journal.jobs()] == [str(real / "a.jpg")]
     finally:
         journal.close()
+
+
+def test_an_output_folder_named_through_a_link_and_dot_dot_is_written(tmp_path, quick_preset):
+    """`-o x/../out` with x a link to deep/real: the folder was made at deep/out (where the
+    kernel resolves it), then the run failed, "not writable"."""
+    (tmp_path / "deep" / "real").mkdir(parents=True)
+    (tmp_path / "x").symlink_to(tmp_path / "deep" / "real", target_is_directory=True)
+    photo(tmp_path / "photos" / "a.jpg", seed=1)
+    report = run_folder(tmp_path / "photos", tmp_path / "x" / ".." / "out", quick_preset, FAST,
+                        False)
+    assert [r.status for r in report.results] == ["done"]
+    assert visible_clips(tmp_path / "deep" / "out") == ["a.mp4"]
+    assert report.output_folder == str(tmp_path / "deep" / "out")
