@@ -457,3 +457,51 @@ def test_crops_are_checked_against_a_photo_replaced_while_the_page_is_open(serve
     assert load_manifest(manifest).entry("wide.png") is None  # nothing written
     photos = {p["name"]: p for p in served.get("/api/photos").json()["photos"]}
     assert (photos["wide.png"]["width_px"], photos["wide.png"]["height_px"]) == (180, 120)
+
+
+def test_a_save_over_an_entry_edited_by_hand_meanwhile_is_refused(served, manifest):
+    """The page read the manifest once: an entry edited by hand while it was open was shown
+    as it was, and saving the page's change to it wrote the old entry back, the hand edit
+    lost. The page now sends the entry each change started from; one changed since is
+    refused, naming the photo, and the page, reloaded, shows the manifest as it is."""
+    reply = served.post("/api/save", {"entries": {"wide.png": EDITED},
+                                      "bases": {"wide.png": None}})
+    assert reply.status == 200, reply.body
+    by_hand = json.loads(manifest.read_text())
+    by_hand["images"]["wide.png"]["duration_s"] = 1.25
+    manifest.write_text(json.dumps(by_hand))
+    moved = dict(EDITED, start=crop(170, 120, 320))
+    reply = served.post("/api/save", {"entries": {"wide.png": moved},
+                                      "bases": {"wide.png": EDITED}})
+    assert reply.status == 409 and b"wide.png: changed in" in reply.body, reply.body
+    assert load_manifest(manifest).entry("wide.png").data["duration_s"] == 1.25
+    photos = {p["name"]: p for p in served.get("/api/photos").json()["photos"]}
+    assert photos["wide.png"]["entry"]["duration_s"] == 1.25  # the page shows it now
+    assert load_manifest(manifest).entry("gone.jpg").data == OTHER_ENTRY
+
+
+def test_two_reviews_of_one_manifest_keep_each_others_saves(folder, manifest, preset):
+    """Two servers (two `kbbatch review` runs) saving different photos at the same moment:
+    each read, changed and wrote the whole file, and one's change was lost, both told 200."""
+    import threading
+
+    with running_server(folder, manifest, preset, OPTIONS) as first, \
+            running_server(folder, manifest, preset, OPTIONS) as second:
+        for round_number in range(6):
+            seconds = {"wide.png": 1.0 + round_number / 10, "tall.png": 2.0 + round_number / 10}
+            replies = {}
+
+            def save(server, name, seconds=seconds, replies=replies):
+                replies[name] = server.post("/api/save", {"entries": {
+                    name: {"duration_s": seconds[name], "planner": "center"}}})
+
+            threads = [threading.Thread(target=save, args=(first, "wide.png")),
+                       threading.Thread(target=save, args=(second, "tall.png"))]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+            assert {name: reply.status for name, reply in replies.items()} == {
+                "wide.png": 200, "tall.png": 200}
+            saved = load_manifest(manifest)
+            assert {name: saved.entry(name).data["duration_s"] for name in seconds} == seconds

@@ -136,6 +136,7 @@ class ReviewSession:
         # Only files that really lie inside the folder: a symlink pointing out is not served.
         self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
                        if p.resolve().is_relative_to(self.folder)}
+        self._manifest_signature = _stat_signature(self.manifest_path)
         self.entries = self._manifest_on_disk()
         self._lock = threading.Lock()
         self._save_lock = threading.Lock()
@@ -162,23 +163,38 @@ class ReviewSession:
         command = ["kbbatch", str(self.folder), "--manifest", str(self.manifest_path)]
         return shlex.join([*command, *self.render_options])
 
-    def save(self, changes: Any) -> dict[str, Any]:
+    def save(self, changes: Any, bases: Any = None) -> dict[str, Any]:
         """Apply the page's changed entries (None removes one) to the manifest on disk.
 
         Entries for photos that are not in the folder are kept; nothing is written unless the
-        whole manifest validates and every crop fits its photo and preset.
+        whole manifest validates and every crop fits its photo and preset. bases: the entry
+        each change started from (None: none); a photo whose entry on disk is no longer its
+        base was changed meanwhile (by hand, or in another review), and the save is refused
+        rather than written over that change.
         """
         if not isinstance(changes, dict):
             raise RequestError(400, "'entries' must be an object of photo name -> entry or null")
-        with self._save_lock:  # one read-modify-write of the file at a time
-            return self._save(changes)
+        if bases is not None and not isinstance(bases, dict):
+            raise RequestError(400, "'bases' must be an object of photo name -> entry or null")
+        # one read-modify-write of the file at a time, in this server and any other
+        with self._save_lock, manifest_lock(self.manifest_path):
+            return self._save(changes, bases or {})
 
-    def _save(self, changes: dict[str, Any]) -> dict[str, Any]:
+    def _save(self, changes: dict[str, Any], bases: dict[str, Any]) -> dict[str, Any]:
         try:
             merged = self._manifest_on_disk()
         except ManifestError as error:
             raise RequestError(409, f"the manifest on disk is not valid, not overwritten: "
                                     f"{error}") from error
+        changed = sorted(name for name in changes
+                         if name in bases and merged.get(name) != bases[name])
+        if changed:
+            with self._lock:  # what the page shows after a reload
+                self.entries = merged
+            raise RequestError(409, f"{', '.join(changed)}: changed in {self.manifest_path} "
+                                    "since this page read it (edited by hand or in another "
+                                    "review); nothing saved: reload the page to see it, then "
+                                    "edit again")
         for name, entry in changes.items():
             self._photo(name)
             if entry is None:
@@ -204,6 +220,7 @@ class ReviewSession:
                                     f"({error.strerror or error})") from error
         with self._lock:
             self.entries = merged
+        self._manifest_signature = _stat_signature(self.manifest_path)
         return {"manifest": str(self.manifest_path), "command": self.render_command(),
                 "entries": len(merged)}
 
@@ -344,6 +361,15 @@ class ReviewSession:
         return result
 
     def overview(self) -> dict[str, Any]:
+        # The manifest as it is now: edited by hand (or by another review) since it was
+        # read, the page showed the old entries, and saved them back over the edit.
+        signature = _stat_signature(self.manifest_path)
+        if signature != self._manifest_signature:  # read again only when it changed
+            with contextlib.suppress(ManifestError, OSError):  # invalid: the save says so
+                entries = self._manifest_on_disk()
+                with self._lock:
+                    self.entries = entries
+                self._manifest_signature = signature
         photos = [self.photo_json(name) for name in self.photos]
         presets = {name: load_preset(name) for name in builtin_names()}
         presets[self.preset.name] = self.preset
@@ -442,6 +468,53 @@ class ReviewSession:
 
     def preview_path(self, key: str) -> Path:
         return self.cache_dir / "previews" / f"{key}.mp4"
+
+
+def _stat_signature(path: Path) -> tuple[int, int, int] | None:
+    """Inode, size and time of a file, None where there is none: a manifest replaced by a
+    save or an editor's rename has another inode."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return None
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+MANIFEST_LOCK_WAIT_S = 30.0
+"""How long a save waits for another review's save of the same manifest."""
+
+
+@contextlib.contextmanager
+def manifest_lock(manifest: Path):
+    """An exclusive lock on one manifest across processes: two reviews of one folder each
+    read, changed and wrote the whole file, and one's save silently undid the other's. The
+    lock is a file in the temporary folder named by the manifest's real path (the manifest
+    itself is replaced by each save, and need not exist yet), so nothing is left beside it."""
+    import fcntl
+    import time
+
+    key = hashlib.sha256(os.fsencode(os.path.realpath(manifest))).hexdigest()[:24]
+    path = Path(tempfile.gettempdir()) / f"kbbatch-manifest-{key}.lock"
+    try:
+        descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+    except OSError as error:  # another user's lock file: this server's own lock still holds
+        log.warning("%s: no lock against other reviews (%s)", path, error.strerror or error)
+        yield
+        return
+    try:
+        deadline = time.monotonic() + MANIFEST_LOCK_WAIT_S
+        while True:
+            try:
+                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise RequestError(409, f"{manifest}: another review is saving it; try "
+                                            "again") from None
+                time.sleep(0.05)
+        yield
+    finally:
+        os.close(descriptor)
 
 
 def _json_body() -> dict[str, Any]:
@@ -580,7 +653,8 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
 
     @app.post("/api/save")
     def save() -> Response:
-        return jsonify(session.save(_json_body().get("entries")))
+        body = _json_body()
+        return jsonify(session.save(body.get("entries"), body.get("bases")))
 
     return app
 

@@ -11,6 +11,7 @@ const state = {
   photos: [],       // its photos, in name order
   selected: null,   // name of the photo in the editor
   drafts: {},       // name -> edited manifest entry (not yet saved)
+  bases: {},        // name -> the manifest entry a draft started from (the save checks it)
   plans: {},        // name -> {start, end} crops shown (source px)
   previews: {},     // name -> {key, url} of the last rendered preview
 };
@@ -53,6 +54,9 @@ function settingsOf(name) {
 function edit(name, change) {
   const entry = entryOf(name);
   change(entry);
+  // What the draft started from: the server refuses the save if the manifest's entry has
+  // changed since (by hand, or in another review), rather than write over that change.
+  if (!(name in state.drafts)) state.bases[name] = clone(photo(name).entry ?? null);
   state.drafts[name] = entry;
   updateSaveButton();
   drawThumb(name);
@@ -357,8 +361,11 @@ async function save() {
     entries[name] = Object.keys(entry).length ? entry : null;
   }
   try {
-    const result = await api('/api/save', {entries});
+    const bases = {};
+    for (const name of Object.keys(entries)) bases[name] = state.bases[name] ?? null;
+    const result = await api('/api/save', {entries, bases});
     state.drafts = {};
+    state.bases = {};
     updateSaveButton();
     $('saved').innerHTML = '';
     const code = document.createElement('code');
