@@ -623,6 +623,8 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
         preset = with_overrides(preset, duration_s=data.get("duration_s"))
     except PresetError as error:  # blamed on 'preset' before, which the entry may not have
         raise ManifestError(f"{entry.where('duration_s')}: {error}") from error
+    # the entry's easing for the planner's crops too, not only its own (checked on loading)
+    preset = with_overrides(preset, easing=data.get("easing"))
     if "planner" in data:  # a registered name: checked when the manifest loaded
         options = replace(options, planner=data["planner"])
     if entry.depth_file is not None and not entry.depth_file.is_file():

@@ -460,3 +460,20 @@ def test_plan_on_a_folder_without_photos_says_so_and_writes_nothing(tmp_path):
     assert result.exit_code == EXIT_NOTHING_TO_DO, result.output
     assert "no photos here" in result.output and "IMG_1.HEIC" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
+
+
+def test_an_entrys_easing_applies_to_the_planners_crops_too(tmp_path, quick_preset):
+    """An entry with an easing and no crops (the review page sets one on any photo) was
+    rendered with the preset's easing, silently."""
+    from kbbatch.depth import DepthOptions
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"a.jpg": {"easing": "ease-in-out"}}}))
+    assert quick_preset.easing == "linear"
+    options = ClipOptions(planner="center", threads=2, depth=DepthOptions(backend="ramp"))
+    [result] = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
+                          manifest=load_manifest(manifest)).results
+    assert result.status == "done" and result.plan["easing"] == "ease-in-out"

@@ -505,3 +505,29 @@ def test_two_reviews_of_one_manifest_keep_each_others_saves(folder, manifest, pr
                 "wide.png": 200, "tall.png": 200}
             saved = load_manifest(manifest)
             assert {name: saved.entry(name).data["duration_s"] for name in seconds} == seconds
+
+
+def test_a_photo_swapped_for_one_of_the_same_size_and_time_is_measured_again(served, folder,
+                                                                            manifest):
+    """A wide photo swapped for a tall one of the same byte size, its time kept (`cp -p`,
+    `touch -r`): the page kept the first one's size, and crops for it were saved for a
+    render that then refused them."""
+    served.wait_planned()
+    wide = folder / "wide.png"
+    stat = wide.stat()
+    tall = cv2.cvtColor(textured_image(360, 240, 5), cv2.COLOR_RGB2BGR)  # rotated shape
+    ok, data = cv2.imencode(".bmp", tall)
+    raw = cv2.imencode(".bmp", cv2.cvtColor(textured_image(240, 360, 0), cv2.COLOR_RGB2BGR))[1]
+    assert ok and len(data) == len(raw)  # same pixel count: a BMP of the same size
+    wide.write_bytes(raw.tobytes())
+    os.utime(wide, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    reply = served.post("/api/save", {"entries": {"wide.png": EDITED}})  # measures it
+    assert reply.status == 200, reply.body
+    same = wide.stat()
+    wide.write_bytes(data.tobytes())
+    os.utime(wide, ns=(same.st_atime_ns, same.st_mtime_ns))
+    assert (wide.stat().st_size, wide.stat().st_mtime_ns) == (same.st_size, same.st_mtime_ns)
+    moved = dict(EDITED, start=crop(170, 120, 320))
+    reply = served.post("/api/save", {"entries": {"wide.png": moved}})
+    assert reply.status == 400 and b"wide.png" in reply.body, reply.body
+    assert load_manifest(manifest).entry("wide.png").data == EDITED  # nothing written

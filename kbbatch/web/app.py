@@ -141,7 +141,7 @@ class ReviewSession:
         self._lock = threading.Lock()
         self._save_lock = threading.Lock()
         self._key_locks: dict[str, threading.Lock] = {}
-        self._hashes: dict[tuple[str, int, int], str] = {}
+        self._hashes: dict[tuple[str, int, int, int, int], str] = {}
         self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kbbatch-plan")
 
@@ -263,7 +263,9 @@ class ReviewSession:
 
     def _file_hash(self, path: Path) -> str:
         stat = path.stat()
-        key = (str(path), stat.st_mtime_ns, stat.st_size)
+        # the change time too, which no copy can set: a photo swapped for one of the same
+        # size with its time kept (`cp -p`, `touch -r`) was taken for the first
+        key = (str(path), stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
         if key not in self._hashes:
             self._hashes[key] = file_sha256(path)
         return self._hashes[key]
