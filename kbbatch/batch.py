@@ -408,6 +408,7 @@ class PlanResult:
     error: str | None = None
     entry: dict | None = None
     seconds: float = 0.0
+    note: str | None = None  # e.g. its preview could not be written (the plan was)
 
 
 PLANNED_FIELDS = ("units", "start", "end", "planner")
@@ -471,7 +472,6 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     Into an existing manifest: its entries stay; a photo whose entry already has crops (or is
     excluded) keeps it unless replan; a planned photo's entry keeps the user's own fields, and
     is planned with its preset, duration and depth file."""
-    from kbbatch.images import write_image
     from kbbatch.manifest import ManifestError, plan_to_entry, write_manifest
     from kbbatch.review import contact_sheet, draw_plan
 
@@ -507,11 +507,12 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             planned_entries[source.name] = planned
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"
-            write_image(preview_dir / preview_name, preview)
             previews.append(preview)
             results.append(PlanResult(str(source), "done",
                                       entry=_with_own_fields(planned, entry),
-                                      seconds=time.perf_counter() - started))
+                                      seconds=time.perf_counter() - started,
+                                      note=_written_or_why(preview_dir / preview_name,
+                                                           preview)))
         except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
             results.append(PlanResult(str(source), "failed", error=str(error)))
         except Exception as error:  # one photo must never stop the batch
@@ -519,5 +520,21 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             results.append(PlanResult(str(source), "failed", error=message))
     write_manifest(manifest_path, _merged_plans(manifest_path, planned_entries, replan))
     if previews:  # beside the previews: a sheet beside the photos became a clip of its own
-        write_image(preview_dir / CONTACT_SHEET_NAME, contact_sheet(previews))
+        why = _written_or_why(preview_dir / CONTACT_SHEET_NAME, contact_sheet(previews))
+        if why:
+            results.append(PlanResult(str(preview_dir / CONTACT_SHEET_NAME), "note", note=why))
     return results
+
+
+def _written_or_why(path: Path, picture) -> str | None:
+    """A preview written, or why not: the plans are in the manifest either way, so a preview
+    folder name taken by a file, or a disk full after the manifest, is a note, not a failed
+    photo (every photo was reported failed, and '0 plans written', with all of them there)."""
+    from kbbatch.images import write_image
+
+    try:
+        write_image(path, picture)
+    except OSError as error:
+        where = Path(error.filename) if error.filename else path
+        return f"{where}: preview not written ({error.strerror or error})"
+    return None

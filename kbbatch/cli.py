@@ -368,6 +368,9 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
     click.echo(os.fsencode("render them with: " + shlex.join([
         "kbbatch", str(folder.absolute()), "--manifest", str(manifest_path.absolute()),
         *render_options])))
+    for result in results:
+        if result.note:
+            click.echo(one_line(f"NOTE {result.note}"), err=True)
     failed = [r for r in results if r.status == "failed"]
     for result in failed:
         click.echo(one_line(f"FAILED {result.error}"), err=True)

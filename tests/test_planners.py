@@ -477,3 +477,25 @@ def test_an_entrys_easing_applies_to_the_planners_crops_too(tmp_path, quick_pres
     [result] = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
                           manifest=load_manifest(manifest)).results
     assert result.status == "done" and result.plan["easing"] == "ease-in-out"
+
+
+def test_previews_that_cannot_be_written_are_a_note_not_failed_photos(tmp_path, quick_preset):
+    """A file holding the previews folder's name: every photo was reported FAILED
+    (FileExistsError) and '0 plan(s) written', exit 1, while the manifest held every plan."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for seed in range(2):
+        Image.fromarray(textured_image(180, 320, seed=seed)).save(folder / f"p{seed}.jpg")
+    (tmp_path / "m-previews").write_text("the user's notes")
+    run = subprocess.run([sys.executable, "-m", "kbbatch", "plan", str(folder), "-o",
+                          str(tmp_path / "m.json"), "--depth", "ramp", "--planner", "center",
+                          "--preset", "preview", "--quiet"], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "2 plan(s) written" in run.stdout and "FAILED" not in run.stderr, run.stderr
+    assert "preview not written" in run.stderr and "m-previews" in run.stderr, run.stderr
+    assert set(load_manifest(tmp_path / "m.json").entries) == {"p0.jpg", "p1.jpg"}
+    assert (tmp_path / "m-previews").read_text() == "the user's notes"
