@@ -1004,8 +1004,10 @@ def test_a_run_killed_mid_encode_leaves_no_depth_maps_of_a_clip_not_made(tmp_pat
 
     folder, out = tmp_path / "in", tmp_path / "out"
     photo(folder / "a.jpg", seed=1)
+    # a clip of some length: the encoder of a 0.6 s clip may come and go between two looks
     run = subprocess.Popen([*CLI, str(folder), "-o", str(out), "--quiet", "--save-depth",
-                            *FAST_CLI], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            *FAST_CLI, "--duration", "4", "--fps", "25"],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         encoders = held_encoders(out, "a")
         assert not list(out.glob("a.*.png")), "maps written before the clip"
