@@ -531,3 +531,15 @@ def test_a_photo_swapped_for_one_of_the_same_size_and_time_is_measured_again(ser
     reply = served.post("/api/save", {"entries": {"wide.png": moved}})
     assert reply.status == 400 and b"wide.png" in reply.body, reply.body
     assert load_manifest(manifest).entry("wide.png").data == EDITED  # nothing written
+
+
+def test_a_crop_too_tight_for_any_cloud_is_refused_at_save(served, manifest):
+    """A crop 2 px wide (or 1e-9) was saved, then failed the render ("too tight ... at least
+    N px")."""
+    served.wait_planned()
+    tight = dict(EDITED, end=crop(120, 90, 2))
+    reply = served.post("/api/save", {"entries": {"wide.png": tight}})
+    assert reply.status == 400 and b"too tight" in reply.body and b"at least" in reply.body, (
+        reply.body)
+    assert load_manifest(manifest).entry("wide.png") is None
+    assert served.post("/api/save", {"entries": {"wide.png": EDITED}}).status == 200

@@ -32,7 +32,7 @@ from flask import Flask, Response, jsonify, request, send_file
 from werkzeug.exceptions import HTTPException
 from werkzeug.serving import make_server
 
-from kbbatch.camera import working_size
+from kbbatch.camera import SceneGeometry, working_size
 from kbbatch.depth import DepthError
 from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.file import load_map
@@ -52,7 +52,9 @@ from kbbatch.pipeline import (
     ClipOptions,
     CropTooSmallError,
     apply_entry,
+    check_cloud_size,
     check_photo_size,
+    cloud_scale,
     make_clip,
     resize_to,
     working_depth,
@@ -231,6 +233,16 @@ class ReviewSession:
         preset, _ = self._settings(entry.image, entry.data)
         width, height = self._size(entry.image)
         plan = entry.plan(width, height, width, preset.aspect, preset.easing)
+        # ... and against the cloud its tightest crop needs, as the render checks it: a crop
+        # 1e-9 wide was saved, then failed the render
+        working_width, working_height = working_size(width, height)
+        scene = SceneGeometry(working_width, working_height, 1.0)
+        working_plan = entry.plan(width, height, working_width, preset.aspect, preset.easing)
+        try:
+            check_cloud_size(cloud_scale(preset, working_plan, scene, max(width, height)),
+                             working_plan, scene, preset, width, Path(entry.image))
+        except CropTooSmallError as error:
+            raise ManifestError(str(error)) from error
         return plan_to_entry(plan, width, width)
 
     # -- photos and plans ------------------------------------------------------------------
