@@ -863,31 +863,36 @@ def test_an_output_folder_removed_mid_run_stops_the_run_and_is_not_made_again(tm
     assert not out.exists()
 
 
+def linked_folder(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """photos/ with a.jpg, link -> photos, and the output folder's path."""
+    real = tmp_path / "photos"
+    photo(real / "a.jpg", seed=1)
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    return real, link, tmp_path / "out"
+
+
 def test_a_folder_run_by_two_spellings_is_not_made_again(tmp_path, quick_preset):
     """Photos run once as `photos/` and once through a link to it (a home-folder link to a
     share, a bind mount): the journal keyed the clips by the first spelling, so the second
     made every clip again, and switching back made them all once more. The link then pointed
     at another card, whose photo has the same name and other bytes: that photo is no spelling
     of the first and gets a clip of its own."""
-    real = tmp_path / "photos"
-    photo(real / "IMG_1.jpg", seed=1)
-    link = tmp_path / "link"
-    link.symlink_to(real, target_is_directory=True)
-    out = tmp_path / "out"
+    real, link, out = linked_folder(tmp_path)
     [first] = run_folder(real, out, quick_preset, FAST, False).results
     assert first.status == "done"
-    made = (out / "IMG_1.mp4").stat().st_mtime_ns
+    made = (out / "a.mp4").stat().st_mtime_ns
     for folder in (link, real):
         [again] = run_folder(folder, out, quick_preset, FAST, False).results
         assert again.status == "skipped", f"made again through {folder.name}"
-    assert (out / "IMG_1.mp4").stat().st_mtime_ns == made
+    assert (out / "a.mp4").stat().st_mtime_ns == made
     other = tmp_path / "card2"
-    photo(other / "IMG_1.jpg", seed=2)
+    photo(other / "a.jpg", seed=2)
     link.unlink()
     link.symlink_to(other, target_is_directory=True)
     [second] = run_folder(link, out, quick_preset, FAST, False).results
-    assert second.status == "done" and Path(second.output).name != "IMG_1.mp4"
-    assert (out / "IMG_1.mp4").stat().st_mtime_ns == made, "the first card's clip was replaced"
+    assert second.status == "done" and Path(second.output).name != "a.mp4"
+    assert (out / "a.mp4").stat().st_mtime_ns == made, "the first card's clip was replaced"
 
 
 def test_an_edit_seen_through_another_spelling_replaces_its_clip_in_place(tmp_path,
@@ -895,11 +900,7 @@ def test_an_edit_seen_through_another_spelling_replaces_its_clip_in_place(tmp_pa
     """A photo edited in place, then run through a link to its folder, was taken for a new
     photo: a second clip under a content name beside the old one, and a note calling the old
     one another photo's."""
-    real = tmp_path / "photos"
-    photo(real / "a.jpg", seed=1)
-    link = tmp_path / "link"
-    link.symlink_to(real, target_is_directory=True)
-    out = tmp_path / "out"
+    real, link, out = linked_folder(tmp_path)
     run_folder(real, out, quick_preset, FAST, False)
     photo(real / "a.jpg", seed=21)  # edited in place
     [result] = run_folder(link, out, quick_preset, FAST, False).results
@@ -969,11 +970,7 @@ def test_a_journal_with_a_photo_under_two_spellings_settles_on_one(tmp_path, qui
     folder's own name, holds one job per spelling, each claiming the clip: every switch made
     it again, and `status` counted the photo twice. The latest record is kept, the other
     dropped, and nothing is made again."""
-    real = tmp_path / "photos"
-    photo(real / "a.jpg", seed=1)
-    link = tmp_path / "link"
-    link.symlink_to(real, target_is_directory=True)
-    out = tmp_path / "out"
+    real, link, out = linked_folder(tmp_path)
     run_folder(real, out, quick_preset, FAST, False)
     made = (out / "a.mp4").stat().st_mtime_ns
     journal = Journal(out)
