@@ -273,7 +273,7 @@ def run_folder(
                 return
             entry = manifest.entry(photo.name) if manifest else None
             if entry is not None and entry.excluded:
-                results.append(ClipResult(str(photo_key(photo)), None, "excluded", 0.0))
+                results.append(excluded_result(journal, photo_key(photo), output_folder))
                 bar.update()
                 continue
             job = start_job(journal, photo_key(photo), output_folder, names[photo], preset,
@@ -344,6 +344,18 @@ def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
             source = Path(job.source)
             if in_folder(source, folder) and not os.path.lexists(source):
                 journal.photo_gone(source, output_folder)
+
+
+def excluded_result(journal, source: Path, output_folder: Path) -> ClipResult:
+    """A photo the manifest excludes: not made, and a clip made of it earlier is left where it
+    is (the user's to delete), but said, or the folder silently disagreed with the manifest."""
+    result = ClipResult(str(source), None, "excluded", 0.0)
+    job = journal.get(source)
+    if job is not None and job.state == "done" and job.output \
+            and (output_folder / job.output).is_file():
+        result.note = (f"{source.name} is excluded by the manifest; its clip {job.output}, made "
+                       "earlier, is kept (delete it if it should go)")
+    return result
 
 
 def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,

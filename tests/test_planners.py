@@ -499,3 +499,22 @@ def test_previews_that_cannot_be_written_are_a_note_not_failed_photos(tmp_path, 
     assert "preview not written" in run.stderr and "m-previews" in run.stderr, run.stderr
     assert set(load_manifest(tmp_path / "m.json").entries) == {"p0.jpg", "p1.jpg"}
     assert (tmp_path / "m-previews").read_text() == "the user's notes"
+
+
+def test_excluding_a_photo_made_earlier_says_its_clip_is_kept(tmp_path, quick_preset):
+    """A photo excluded after its clip was made: the clip stayed, without a word, and the
+    output folder no longer matched the manifest."""
+    from kbbatch.depth import DepthOptions
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    options = ClipOptions(planner="center", threads=2, depth=DepthOptions(backend="ramp"))
+    run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False)
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"a.jpg": {"exclude": True}}}))
+    [result] = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
+                          manifest=load_manifest(manifest)).results
+    assert result.status == "excluded"
+    assert result.note and "a.mp4, made earlier, is kept" in result.note
+    assert (tmp_path / "out" / "a.mp4").is_file()

@@ -543,3 +543,16 @@ def test_a_crop_too_tight_for_any_cloud_is_refused_at_save(served, manifest):
         reply.body)
     assert load_manifest(manifest).entry("wide.png") is None
     assert served.post("/api/save", {"entries": {"wide.png": EDITED}}).status == 200
+
+
+def test_a_depth_map_the_manifest_names_in_the_folder_is_no_photo_of_the_page(folder, tmp_path,
+                                                                             preset):
+    """`plan` and `render` pass over a depth map a manifest entry names in the photo folder;
+    the page listed and planned it as a photo."""
+    write_image(folder / "wide-depth.png", textured_image(240, 360, 7))
+    manifest = tmp_path / "maps.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {
+        "wide.png": {"depth": str(folder / "wide-depth.png")}}}))
+    with running_server(folder, manifest, preset, OPTIONS) as served:
+        names = {p["name"] for p in served.get("/api/photos").json()["photos"]}
+    assert "wide-depth.png" not in names and {"wide.png", "tall.png"} <= names

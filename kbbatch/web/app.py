@@ -139,6 +139,10 @@ class ReviewSession:
         self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
                        if p.resolve().is_relative_to(self.folder)}
         self._manifest_signature = _stat_signature(self.manifest_path)
+        if self.manifest_path.exists():  # a depth map the manifest names is no photo to plan
+            maps = load_manifest(self.manifest_path)  # (render and plan pass it over too)
+            self.photos = {name: state for name, state in self.photos.items()
+                           if not maps.depth_map_of(state.path)}
         self.entries = self._manifest_on_disk()
         self._lock = threading.Lock()
         self._save_lock = threading.Lock()
