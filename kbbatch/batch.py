@@ -383,10 +383,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         journal.start(source, fingerprint, settings, name, content)
     except JournalError as error:
         return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
-    # An edit, or another photo saved under this name (one import folder for every card):
-    # either way the clip is replaced, and the user is told.
-    replaces = (previous is not None and previous.state == "done" and previous.output == name
-                and previous.content not in (None, content) and output.is_file())
+    replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
     kept = previous is not None and previous.output == name  # its own name: nothing to note
     return ClipJob(source, output, entry, "" if kept else preferred,
                    replaces_other_bytes=replaces)
@@ -396,12 +393,10 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
     """Record a made clip in the journal; a journal that cannot be written fails the photo."""
     from kbbatch.journal import JournalError, source_fingerprint
 
-    if job.preferred:
-        named = clip_name_note(job.source, job.preferred, job.output.name)
-        result.note = "; ".join(filter(None, (named, result.note))) or None
-    if job.replaces_other_bytes and result.status == "done":
-        replaced = replaced_clip_note(job.source, job.output.name)
-        result.note = f"{result.note}; {replaced}" if result.note else replaced
+    named = clip_name_note(job.source, job.preferred, job.output.name) if job.preferred else None
+    replaced = (replaced_clip_note(job.source, job.output.name)
+                if job.replaces_other_bytes and result.status == "done" else None)
+    result.note = "; ".join(filter(None, (named, result.note, replaced))) or None
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None
         # an interrupted clip is queued again, as one whose run was stopped, and so is one its

@@ -422,6 +422,12 @@ def is_own_png(path: Path) -> bool:
     return own_png_text(path) is not None
 
 
+def is_users_file(path: Path) -> bool:
+    """Something at path that kbbatch did not write (a link, a folder, a file without its
+    mark): never replaced by an image kbbatch writes beside a clip."""
+    return os.path.lexists(path) and not is_own_png(path)
+
+
 def write_image(path: Path, rgb: np.ndarray, own: bool = False,
                 text: dict[str, str] | None = None) -> None:
     """Write an RGB (or single-channel, 8 or 16-bit) image atomically; own: a PNG marked as

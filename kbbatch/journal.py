@@ -105,6 +105,13 @@ class Job:
     def name(self) -> str:
         return Path(self.source).name
 
+    def made_from_other_bytes(self, name: str, content: str, output: Path) -> bool:
+        """Whether making `name` again now replaces a finished clip of this job made from other
+        bytes (an edit, or another photo saved under the name: one import folder for every
+        card), which the user is told of once the new clip is made."""
+        return (self.state == "done" and self.output == name
+                and self.content not in (None, content) and output.is_file())
+
 
 def source_fingerprint(path: Path) -> str:
     """Size and modification time: a changed photo (or clip) is a new one."""
@@ -241,13 +248,7 @@ class Journal:
         for job in self._select("WHERE content = ? AND source != ?",
                                 (content, _stored(source))):
             other = Path(job.source)
-            if other.name != source.name:
-                continue
-            try:
-                same = os.path.samefile(other.parent, source.parent)
-            except OSError:  # that spelling leads nowhere now
-                continue
-            if not same:
+            if other.name != source.name or not in_folder(other, source.parent):
                 continue
             if own is None or job.updated > own.updated:
                 self.moved(other, source)
@@ -341,9 +342,9 @@ class Journal:
 
     def _is_free(self, name: str, source: Path, content: str, folder: Path,
                  companions: tuple[str, ...]) -> bool:
-        from kbbatch.images import is_own_png
+        from kbbatch.images import is_users_file
 
-        if any(os.path.lexists(folder / file) and not is_own_png(folder / file)
+        if any(is_users_file(folder / file)
                for file in companions):
             return False  # the user's file (beside this photo's own clip too)
         owners = sorted(self.owners(name), key=lambda job: job.updated)
@@ -366,26 +367,31 @@ LOCK_WAIT_S = 1.0
 status` takes the lock for an instant to tell a killed run from a live one."""
 
 
+def locked_within(descriptor: int, wait_s: float) -> bool:
+    """An exclusive flock on the open file, taken within wait_s; False if another holds it."""
+    import fcntl
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+
+
 class FolderLock:
     """An exclusive lock on a folder (flock on the folder itself, so it needs no file there and
     works on a read-only inbox); released when the process ends, even by kill -9."""
 
     def __init__(self, folder: Path, what: str, wait_s: float = LOCK_WAIT_S) -> None:
-        import fcntl
-
         self.descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-        deadline = time.monotonic() + wait_s
-        while True:
-            try:
-                fcntl.flock(self.descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                return
-            except BlockingIOError as error:
-                if time.monotonic() < deadline:
-                    time.sleep(0.05)
-                    continue
-                os.close(self.descriptor)
-                raise FolderBusyError(f"{folder}: another kbbatch is already {what} this "
-                                      "folder; stop it first") from error
+        if not locked_within(self.descriptor, wait_s):
+            os.close(self.descriptor)
+            raise FolderBusyError(f"{folder}: another kbbatch is already {what} this "
+                                  "folder; stop it first")
 
     def release(self) -> None:
         os.close(self.descriptor)

@@ -562,7 +562,7 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str
     for that photo's depth (kbbatch.depth.file). A file of either name that kbbatch did not
     write is the user's: left as it is and returned (a clip keeps its name through a
     re-render, so its depth images' names may have been taken since it was first made)."""
-    from kbbatch.images import SOURCE_SHA256_KEY, depth_image_names, is_own_png, write_image
+    from kbbatch.images import SOURCE_SHA256_KEY, depth_image_names, is_users_file, write_image
     from kbbatch.review import depth_picture, normalised_disparity
 
     map_name, picture_name = depth_image_names(clip_path.name)
@@ -572,7 +572,7 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str
               clip_path.with_name(picture_name): lambda: depth_picture(disparity)}
     users = []
     for path, pixels in images.items():
-        if os.path.lexists(path) and not is_own_png(path):
+        if is_users_file(path):
             users.append(path)
             continue
         write_image(path, pixels(), own=True, text=text if path.name == map_name else None)

@@ -38,7 +38,7 @@ from kbbatch.images import (
     depth_image_names,
     disk_full_message,
     is_disk_full,
-    is_own_png,
+    is_users_file,
 )
 from kbbatch.journal import source_fingerprint
 from kbbatch.manifest import ManifestEntry, ManifestError
@@ -261,7 +261,7 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
         # the clip first, its depth images after (as make_clip writes them)
         for name, data in sorted(outcome.files.items(), key=lambda f: f[0] != job.output.name):
             path = job.output.parent / name
-            if name != job.output.name and os.path.lexists(path) and not is_own_png(path):
+            if name != job.output.name and is_users_file(path):
                 users.append(path)  # the user's file: never replaced (save_depth_images)
                 continue
             with atomic_output(path, CLIP_SUFFIX if name == job.output.name else path.suffix,

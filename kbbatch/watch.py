@@ -479,9 +479,8 @@ class JobRunner:
             note = clip_name_note(path, preferred, name)
             if note is not None:
                 log.warning("%s", note)
-            replaces = (previous is not None and previous.state == "done"
-                        and previous.output == name and previous.content not in (None, content)
-                        and output.is_file())
+            replaces = (previous is not None
+                        and previous.made_from_other_bytes(name, content, output))
             log.info("start %s", path.name)
             try:
                 future = self.pool.submit(_render, path, output, s.preset, options, entry)

@@ -236,18 +236,17 @@ class ReviewSession:
             return None
         preset, _ = self._settings(entry.image, entry.data)
         width, height = self._size(entry.image)
-        plan = entry.plan(width, height, width, preset.aspect, preset.easing)
+        working_width, working_height = working_size(width, height)
+        plan = entry.plan(width, height, working_width, preset.aspect, preset.easing)
         # ... and against the cloud its tightest crop needs, as the render checks it: a crop
         # 1e-9 wide was saved, then failed the render
-        working_width, working_height = working_size(width, height)
         scene = SceneGeometry(working_width, working_height, 1.0)
-        working_plan = entry.plan(width, height, working_width, preset.aspect, preset.easing)
         try:
-            check_cloud_size(cloud_scale(preset, working_plan, scene, max(width, height)),
-                             working_plan, scene, preset, width, Path(entry.image))
+            check_cloud_size(cloud_scale(preset, plan, scene, max(width, height)), plan, scene,
+                             preset, width, Path(entry.image))
         except CropTooSmallError as error:
             raise ManifestError(str(error)) from error
-        return plan_to_entry(plan, width, width)
+        return plan_to_entry(plan, width, working_width)
 
     # -- photos and plans ------------------------------------------------------------------
 
@@ -508,8 +507,7 @@ def manifest_lock(manifest: Path):
     read, changed and wrote the whole file, and one's save silently undid the other's. The
     lock is a file in the temporary folder named by the manifest's real path (the manifest
     itself is replaced by each save, and need not exist yet), so nothing is left beside it."""
-    import fcntl
-    import time
+    from kbbatch.journal import locked_within
 
     key = hashlib.sha256(os.fsencode(os.path.realpath(manifest))).hexdigest()[:24]
     path = Path(tempfile.gettempdir()) / f"kbbatch-manifest-{key}.lock"
@@ -520,16 +518,8 @@ def manifest_lock(manifest: Path):
         yield
         return
     try:
-        deadline = time.monotonic() + MANIFEST_LOCK_WAIT_S
-        while True:
-            try:
-                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() > deadline:
-                    raise RequestError(409, f"{manifest}: another review is saving it; try "
-                                            "again") from None
-                time.sleep(0.05)
+        if not locked_within(descriptor, MANIFEST_LOCK_WAIT_S):
+            raise RequestError(409, f"{manifest}: another review is saving it; try again")
         yield
     finally:
         os.close(descriptor)
