@@ -271,7 +271,7 @@ def run_folder(
                 stop["by"] = FOLDER_GONE
             if stop:
                 return
-            entry = manifest.entry(photo.name) if manifest else None
+            entry = manifest.entry(photo.name, photo.parent) if manifest else None
             if entry is not None and entry.excluded:
                 results.append(excluded_result(journal, photo_key(photo), output_folder))
                 bar.update()
@@ -449,15 +449,15 @@ def _keeps_its_entry(entry: ManifestEntry | None, replan: bool) -> bool:
     return entry is not None and (entry.excluded or (entry.has_crops and not replan))
 
 
-def _merged_plans(manifest_path: Path, planned_entries: dict[str, dict], replan: bool
-                  ) -> dict[str, dict]:
+def _merged_plans(manifest_path: Path, folder: Path, planned_entries: dict[str, dict],
+                  replan: bool) -> dict[str, dict]:
     """The manifest as it is on disk now, with the new plans: read again at the end, as an
     edit saved while the photos were planned (from `kbbatch review`) was written over with
     the copy read at the start."""
     current = existing_manifest(manifest_path)
     entries = {name: entry.data for name, entry in current.entries.items()} if current else {}
     for name, planned in planned_entries.items():
-        entry = current.entry(name) if current else None
+        entry = current.entry(name, folder) if current else None
         if _keeps_its_entry(entry, replan):
             continue  # crops or an exclude saved meanwhile: the user's
         entries[entry.image if entry else name] = _with_own_fields(planned, entry)
@@ -499,7 +499,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     for source in progress_bar(sources, desc="planning", unit="photo",
                                disable=not show_progress):
         started = time.perf_counter()
-        entry = existing.entry(source.name) if existing else None
+        entry = existing.entry(source.name, source.parent) if existing else None
         if _keeps_its_entry(entry, replan):
             results.append(PlanResult(str(source), "kept", entry=entry.data))
             continue
@@ -525,7 +525,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         except Exception as error:  # one photo must never stop the batch
             message = f"{source}: {type(error).__name__}: {error}"
             results.append(PlanResult(str(source), "failed", error=message))
-    write_manifest(manifest_path, _merged_plans(manifest_path, planned_entries, replan))
+    write_manifest(manifest_path, _merged_plans(manifest_path, folder, planned_entries, replan))
     if previews:  # beside the previews: a sheet beside the photos became a clip of its own
         why = _written_or_why(preview_dir / CONTACT_SHEET_NAME, contact_sheet(previews))
         if why:

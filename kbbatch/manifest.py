@@ -101,9 +101,18 @@ class Manifest:
         object.__setattr__(self, "normal_entries",
                            {_normal(name): entry for name, entry in self.entries.items()})
 
-    def entry(self, image_name: str) -> ManifestEntry | None:
+    def entry(self, image_name: str, folder: Path | None = None) -> ManifestEntry | None:
+        """The entry of a photo: its own key, else a key in the other Unicode form, unless that
+        key names a file of its own in folder (two photos whose names differ only in form,
+        as Linux allows, shared one entry: the second was rendered with the first's crops,
+        and `plan` wrote its plan over the first's)."""
         found = self.entries.get(image_name)
-        return found if found is not None else self.normal_entries.get(_normal(image_name))
+        if found is not None:
+            return found
+        found = self.normal_entries.get(_normal(image_name))
+        if found is not None and folder is not None and os.path.lexists(folder / found.image):
+            return None
+        return found
 
     def depth_map_of(self, path: Path) -> str | None:
         """The image whose entry names this file as its depth map, if any: such a map in the

@@ -442,7 +442,7 @@ class JobRunner:
             if path in busy or not inbox.is_ready(path):
                 continue
             renamed = inbox.arrivals[path].renamed
-            entry = manifest.entry(path.name) if manifest else None
+            entry = manifest.entry(path.name, path.parent) if manifest else None
             map_of = manifest.depth_map_of(path) if manifest else None
             if (entry is not None and entry.excluded) or map_of:  # as the batch: not rendered
                 inbox.forget(path)

@@ -230,6 +230,42 @@ def test_a_manifest_key_names_its_photo_in_either_unicode_form(tmp_path):
     assert manifest.unmatched_images({"other.jpg"}) == [composed]
 
 
+def test_twin_photos_whose_names_differ_only_in_unicode_form_keep_their_own_entries(
+        tmp_path, quick_preset):
+    """Linux keeps `café.jpg` composed and decomposed as two files. The decomposed one took
+    the composed one's entry: it was skipped when the other was excluded, and `plan` wrote
+    its plan over the other's hand-made crops."""
+    import unicodedata
+
+    composed = unicodedata.normalize("NFC", "café.jpg")
+    decomposed = unicodedata.normalize("NFD", composed)
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320, 2)).save(folder / decomposed)
+    hand_crop = {"center_x": 150.0, "center_y": 90.0, "width": 200.0}
+    mine = {"start": hand_crop, "end": hand_crop | {"width": 160.0}}
+    manifest_path = write(tmp_path / "m.json", {"version": 1, "images": {composed: mine}})
+    manifest = load_manifest(manifest_path)
+    assert manifest.entry(decomposed, folder) is manifest.entries[composed]  # as a Mac saves
+    Image.fromarray(textured_image(180, 320, 1)).save(folder / composed)
+    assert manifest.entry(decomposed, folder) is None  # its twin's entry is not its own
+    assert manifest.entry(composed, folder) is manifest.entries[composed]
+
+    options = ClipOptions(planner="center", threads=2)
+    results = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
+    assert sorted(r.status for r in results) == ["done", "kept"]
+    written = json.loads(manifest_path.read_text())["images"]
+    assert written[composed] == mine
+    assert written[decomposed]["start"]["width"] > 0
+
+    write(manifest_path, {"version": 1, "images": {composed: {"exclude": True}}})
+    out = tmp_path / "out"
+    report = run_folder(folder, out, quick_preset, options, show_progress=False,
+                        manifest=load_manifest(manifest_path))
+    made = [Path(r.source).name for r in report.results if r.status == "done"]
+    assert made == [decomposed]
+
+
 def test_crop_outside_the_photo_is_refused(tmp_path):
     path = write(tmp_path / "m.json", {"images": {"a.jpg": {
         "units": "px", "start": {"center_x": 100, "center_y": 100, "width": 400},

@@ -362,6 +362,10 @@ def test_the_page_shows_an_entry_whose_key_is_in_the_other_unicode_form(tmp_path
     manifest.write_text(json.dumps({"version": 1, "images": {composed: {"planner": "center"}}}))
     session = ReviewSession(folder, manifest, load_preset("preview"), OPTIONS, ())
     assert session.entries == {decomposed: {"planner": "center"}}
+    # with a twin of its composed name beside it, the key is the twin's own (Linux keeps both)
+    write_image(folder / composed, textured_image(120, 200, seed=3))
+    session = ReviewSession(folder, manifest, load_preset("preview"), OPTIONS, ())
+    assert session.entries == {composed: {"planner": "center"}}
 
 
 def test_the_page_follows_a_depth_map_edited_while_open_and_says_what_is_wrong(

@@ -159,8 +159,10 @@ class ReviewSession:
             return {}
         manifest = load_manifest(self.manifest_path)
         entries = {name: entry.data for name, entry in manifest.entries.items()}
-        for name in self.photos:  # a key in the other Unicode form takes the photo's spelling,
-            entry = manifest.entry(name)  # so the page shows and saves the entry that renders
+        # a key in the other Unicode form takes the photo's spelling, so the page shows and
+        # saves the entry that renders
+        for name in self.photos:
+            entry = manifest.entry(name, self.folder)
             if entry is not None and entry.image != name:
                 entries[name] = entries.pop(entry.image)
         return entries
