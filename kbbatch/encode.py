@@ -215,6 +215,13 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
     return [str(path) if arg == OUTPUT_PLACEHOLDER else arg for arg in command]
 
 
+KILL_REASONS = {
+    signal.SIGXFSZ: "the file size limit, `ulimit -f`, was reached",
+    signal.SIGKILL: "killed outright: often the kernel's out-of-memory killer",
+}
+"""What a signal that kills ffmpeg usually means, said with its name."""
+
+
 def _signal_name(number: int) -> str:
     try:
         return signal.Signals(number).name
@@ -261,8 +268,10 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> i
         cause = _signal_name(killer) if killer else "a signal"
         raise EncoderStoppedError(f"ffmpeg was stopped by {cause} while writing {path}; the "
                                   "photo is not at fault and is taken again")
-    if killer is not None:  # SIGXFSZ (a file-size limit), SIGKILL (out of memory): a failure
-        raise EncodeError(f"ffmpeg was killed by {_signal_name(killer)} writing {path} "
+    if killer is not None:  # a failure: the photo is not taken again
+        why = KILL_REASONS.get(killer)
+        raise EncodeError(f"ffmpeg was killed by {_signal_name(killer)}"
+                          f"{f' ({why})' if why else ''} writing {path} "
                           f"{stderr.strip()[-800:]}".rstrip())
     if status != 0:
         for message, number in FFMPEG_DISK_FULL_MESSAGES.items():

@@ -108,7 +108,9 @@ def test_an_output_folder_that_cannot_be_written_is_a_clear_error(tmp_path, quic
 
 
 def test_disk_full_during_encoding_leaves_no_partial_clip(tmp_path):
-    """RLIMIT_FSIZE makes every write past 64 KiB fail, as a full disk would."""
+    """RLIMIT_FSIZE makes every write past 64 KiB fail, as a full disk would. Python ignores
+    SIGXFSZ (as it does under a shell's `ulimit -f`); ffmpeg, started with the default
+    handlers, is killed by it, and the error said only "killed by SIGXFSZ"."""
     folder = tmp_path / "in"
     folder.mkdir()
     noise = np.random.default_rng(0).integers(0, 256, (720, 1280, 3), dtype=np.uint8)
@@ -127,6 +129,7 @@ def test_disk_full_during_encoding_leaves_no_partial_clip(tmp_path):
                             timeout=300)
     assert result.returncode == 1, result.stderr
     assert "a.png" in result.stderr and "FAILED" in result.stderr
+    assert "SIGXFSZ (the file size limit, `ulimit -f`, was reached)" in result.stderr
     assert not visible_clips(out), "a partial clip was left under the final name"
     assert not list(out.glob(".*part*")), "a temporary file was left behind"
 
