@@ -17,6 +17,7 @@ from pathlib import Path
 from kbbatch.depth import DepthError
 from kbbatch.images import (
     OLD_PLAN_SHEET_REASON,
+    PHOTO_KINDS,
     UNREAD_FORMAT_REASON,
     FolderScan,
     ImageReadError,
@@ -110,7 +111,6 @@ class RunReport:
 
 
 REPORT_NAME = "kbbatch-report.json"
-PHOTO_KINDS = "jpg, jpeg, png, webp, tif, tiff, bmp"
 
 
 HIDDEN_REASON = "hidden (the name starts with a dot); not taken: rename to render"
@@ -127,8 +127,8 @@ def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
         where += f"; {_some(scan.unread_formats)}: {UNREAD_FORMAT_REASON}"
     if scan.hidden:
         where += f"; {_some(scan.hidden)}: {HIDDEN_REASON}"
-    return EmptyFolderError(f"{folder}: no photos here ({PHOTO_KINDS}){where}; nothing was "
-                            "written")
+    kinds = ", ".join(PHOTO_KINDS)
+    return EmptyFolderError(f"{folder}: no photos here ({kinds}){where}; nothing was written")
 
 
 @contextlib.contextmanager

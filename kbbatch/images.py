@@ -24,10 +24,16 @@ import cv2
 import numpy as np
 from PIL import Image, ImageCms, ImageOps, UnidentifiedImageError
 
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".webp", ".tif", ".tiff", ".bmp"})
+PHOTO_KINDS = ("jpg", "jpeg", "jpe", "jfif", "jif", "png", "webp", "tif", "tiff", "bmp")
+"""The photo formats read, by file name (any case): a JPEG saved as .jfif or .jpe (as some
+browsers and cameras name them) was passed over without a word."""
 
-UNREAD_PHOTO_SUFFIXES = frozenset({".heic", ".heif", ".avif", ".gif", ".jxl", ".dng", ".cr2",
-                                   ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2"})
+IMAGE_SUFFIXES = frozenset(f".{kind}" for kind in PHOTO_KINDS)
+
+UNREAD_PHOTO_SUFFIXES = frozenset({
+    ".heic", ".heif", ".hif", ".avif", ".gif", ".jxl", ".dng", ".cr2", ".cr3", ".crw", ".nef",
+    ".nrw", ".arw", ".srf", ".sr2", ".raf", ".orf", ".rw2", ".pef", ".srw", ".iiq", ".3fr",
+    ".x3f", ".erf", ".mrw", ".kdc", ".dcr", ".mos", ".rwl"})
 """Photo formats kbbatch does not read (a phone's HEIC, a camera's raw files): said, not passed
 over in silence with an exit status of success."""
 

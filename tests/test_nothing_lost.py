@@ -745,6 +745,9 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     os.mkfifo(folder / "pipe.jpg")  # read, it would block the batch for good
     (folder / "loop1.jpg").symlink_to("loop2.jpg")  # each target exists: it is the other
     (folder / "IMG_0002.heic").write_bytes(b"ftypheic")  # a phone's photo, not read
+    (folder / "IMG_0003.PEF").write_bytes(b"raw")  # a camera's raw file, not read
+    photo(folder / "saved.jfif", seed=5)  # JPEGs by other names: read
+    photo(folder / "camera.JPE", seed=6)
     (folder / "notes.txt").write_text("not a photo at all")
     (folder / "loop2.jpg").symlink_to("loop1.jpg")
     photo(folder / "crops-contact.jpg", seed=3)  # an old `kbbatch plan`'s sheet...
@@ -754,6 +757,7 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     by_name = {Path(r.source).name: r for r in report.results}
     assert by_name["a.jpg"].status == "done"
     assert by_name["team-contact.jpg"].status == "done"
+    assert by_name["saved.jfif"].status == by_name["camera.JPE"].status == "done"
     assert "crops-contact.jpg" not in by_name
     assert f"{folder / 'crops-contact.jpg'}: {OLD_PLAN_SHEET_REASON}" in report.notes
     assert "pipe.jpg: is not a regular file" in by_name["pipe.jpg"].error
@@ -764,7 +768,7 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
         assert "symbolic link in a loop" in by_name[name].error
     assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
     assert [note for note in report.notes if "format kbbatch does not read" in note] == [
-        f"{folder / 'IMG_0002.heic'}: {UNREAD_FORMAT_REASON}"]
+        f"{folder / name}: {UNREAD_FORMAT_REASON}" for name in ("IMG_0002.heic", "IMG_0003.PEF")]
 
 
 def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):
