@@ -1,3 +1,3 @@
-from kbbatch.cli import main
+from kbbatch.entry import main
 
 main()

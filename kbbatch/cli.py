@@ -28,6 +28,7 @@ from kbbatch.batch import (
 from kbbatch.depth import DepthOptions
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
+from kbbatch.entry import EXIT_INTERRUPTED
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.outputs import OutputFolderError
@@ -64,8 +65,6 @@ def _threads_cap(context: click.Context, param: click.Parameter, value: int) -> 
 EXIT_NOTHING_TO_DO = 3
 """Exit status of a batch over a folder without photos (0: all made, 1: some failed)."""
 
-EXIT_INTERRUPTED = 130
-"""Exit status of a batch stopped by Ctrl-C or SIGTERM before it was through."""
 
 
 class DefaultCommandGroup(click.Group):

@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -555,6 +556,28 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
         assert stopped["source"].endswith("p0.jpg") and "SIGINT" in stopped["error"]
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout, status.stdout
+
+
+@pytest.mark.parametrize("command", ["render", "plan"])
+def test_ctrl_c_while_it_starts_up_ends_with_130_and_no_traceback(tmp_path, command):
+    """Ctrl-C while the modules loaded gave a traceback; while a command set up (or, in
+    `plan`, planned), click's "Aborted!" and status 1, which says that photos failed."""
+    folder = tmp_path / "in"
+    photo(folder / "a.jpg", seed=1)
+    for delay_s in (0.1, 0.3, 0.6, 1.0):
+        target = tmp_path / f"out{delay_s}"
+        if command == "plan":
+            target = target.with_suffix(".json")
+        process = subprocess.Popen([*CLI, command, str(folder), "-o", str(target), *FAST_CLI],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay_s)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=120)
+        if "written to" in stdout or "made in" in stdout:  # through before the signal came
+            continue
+        assert process.returncode == 130, (delay_s, stderr)
+        assert "Traceback" not in stderr and "Aborted" not in stderr, (delay_s, stderr)
+        assert "run again" in stderr, (delay_s, stderr)
 
 
 @pytest.mark.slow
