@@ -280,7 +280,10 @@ def read_image(path: Path) -> np.ndarray:
     except PermissionError as error:
         raise ImageReadError(path, unreadable_reason(error)) from error
     except UnidentifiedImageError as error:
-        raise ImageReadError(path, "is not an image this tool can read") from error
+        picture = _read_with_opencv(path) if path.suffix.lower() in (".tif", ".tiff") else None
+        if picture is None:
+            raise ImageReadError(path, "is not an image this tool can read") from error
+        return picture
     except (OSError, ValueError, SyntaxError) as error:
         raise ImageReadError(path, f"is corrupt or truncated ({error})") from error
 
@@ -311,15 +314,52 @@ def _srgb_profile() -> ImageCms.ImageCmsProfile:
     return ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB"))
 
 
+FLOAT_RANGE_PERCENTILE = 99.0
+"""A float image's range (0-1, 0-255 or 0-65535) is the smallest that holds this percentile of
+its pixels."""
+
+
+def _to_8bit(values: np.ndarray, is_float: bool, is_16bit: bool) -> np.ndarray:
+    """Pixel values of a wide type in 0..255. Floats have no fixed range: it is judged by the
+    bulk of the pixels, not the brightest one (a 0-1 image with a few highlights above 1, as
+    a raw converter or a stack writes, was read as 0-255 and came out almost black); what
+    lies above the range is clipped."""
+    values = np.nan_to_num(values.astype(np.float64), posinf=0.0, neginf=0.0)
+    level = (float(np.percentile(values, FLOAT_RANGE_PERCENTILE)) if is_float
+             else float(values.max()))
+    peak = 65535.0 if is_16bit or level > 255 else 255.0
+    if is_float and level <= 1.0:
+        peak = 1.0
+    return np.clip(values / peak * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _read_with_opencv(path: Path) -> np.ndarray | None:
+    """A TIFF Pillow cannot open (32-bit float RGB, as HDR merges save) read by OpenCV, or
+    None. Its orientation tag is not applied."""
+    try:
+        picture = read_image_bytes(path)
+    except (OSError, cv2.error):
+        return None
+    if picture is None or picture.ndim not in (2, 3) or picture.size == 0:
+        return None
+    if picture.shape[0] * picture.shape[1] > MAX_SOURCE_PIXELS:
+        raise ImageReadError(path, f"is {picture.shape[1]}x{picture.shape[0]} px, more than "
+                             f"the {MAX_SOURCE_PIXELS:,} px this tool decodes; downscale it first")
+    if picture.ndim == 2:
+        picture = picture[..., None]
+    picture = picture[..., :3] if picture.shape[2] >= 3 else picture[..., :1]
+    if picture.dtype != np.uint8:
+        picture = _to_8bit(picture, np.issubdtype(picture.dtype, np.floating),
+                           picture.dtype == np.uint16)
+    rgb = picture[..., ::-1] if picture.shape[2] == 3 else np.repeat(picture, 3, axis=2)
+    return np.ascontiguousarray(rgb)
+
+
 def _to_rgb8(image: Image.Image) -> np.ndarray:
     """Convert any Pillow mode (16-bit, float, grey, palette, CMYK, alpha) to 8-bit RGB."""
     mode = image.mode
     if mode in ("I;16", "I;16B", "I;16L", "I", "F"):
-        values = np.nan_to_num(np.asarray(image, dtype=np.float64), posinf=0.0, neginf=0.0)
-        peak = 65535.0 if mode.startswith("I;16") or values.max() > 255 else 255.0
-        if mode == "F" and values.max() <= 1.0:  # floats of 0 to 1 (a black clip before)
-            peak = 1.0
-        grey = np.clip(values / peak * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        grey = _to_8bit(np.asarray(image), mode == "F", mode.startswith("I;16"))
         return np.ascontiguousarray(np.repeat(grey[..., None], 3, axis=2))
     if mode in ("RGBA", "LA", "PA") or (mode == "P" and "transparency" in image.info):
         rgba = image.convert("RGBA")

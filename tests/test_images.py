@@ -1,5 +1,6 @@
 import os
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image
@@ -177,6 +178,19 @@ def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
     assert abs(int(read[0, -1, 0]) - 255) <= 1 and abs(int(read[0, 128, 0]) - 128) <= 1
     Image.fromarray(ramp * 255.0, mode="F").save(tmp_path / "bytes.tif")  # 0-255 as before
     assert np.abs(read_image(tmp_path / "bytes.tif").astype(int) - read.astype(int)).max() <= 1
+    hot = ramp.copy()
+    hot[0, :3] = (1.02, 4.0, 80.0)  # highlights above 1: it was read as 0-255, nearly black
+    Image.fromarray(hot, mode="F").save(tmp_path / "hot.tif")
+    read_hot = read_image(tmp_path / "hot.tif")
+    assert np.abs(read_hot[1:].astype(int) - read[1:].astype(int)).max() <= 1
+    assert (read_hot[0, :3] == 255).all()  # clipped
+    colour = np.dstack([ramp, ramp[:, ::-1], np.full_like(ramp, 0.5)])  # BGR for OpenCV
+    colour[0, 0] = 3.0
+    assert cv2.imwrite(str(tmp_path / "merged.tif"), colour)  # an HDR merge's float RGB TIFF
+    read_colour = read_image(tmp_path / "merged.tif")  # Pillow cannot open it
+    assert read_colour.shape == (16, 256, 3)
+    assert np.abs(read_colour[1:, :, 2].astype(int) - read[1:, :, 0]).max() <= 1  # blue
+    assert abs(int(read_colour[5, 10, 0]) - 128) <= 1  # red: 0.5
 
 
 def test_an_animated_photo_is_read_from_its_first_frame_and_says_so(tmp_path, caplog):
