@@ -26,7 +26,7 @@ from kbbatch.images import (
     read_image,
     scan_folder,
 )
-from kbbatch.manifest import Manifest, ManifestEntry
+from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.models import providers_used
 from kbbatch.outputs import (
     OutputFolderError,
@@ -418,7 +418,7 @@ class PlanResult:
     note: str | None = None  # e.g. its preview could not be written (the plan was)
 
 
-PLANNED_FIELDS = ("units", "start", "end", "planner")
+PLANNED_FIELDS = ("units", "photo_size", "start", "end", "planner")
 """What `kbbatch plan` writes into an entry (with easing, which a user's setting overrides);
 the rest of an existing entry (exclude, preset, duration, depth) is the user's and kept."""
 
@@ -427,7 +427,7 @@ def existing_manifest(manifest_path: Path) -> Manifest | None:
     """The manifest `plan -o` would write over, or None where there is none. Anything else
     there (a photo, a hand-written file kbbatch cannot read) is refused, not replaced: the
     default `-o manifest.json` replaced a photo or a user's edits without a word."""
-    from kbbatch.manifest import ManifestError, is_read_only, load_manifest
+    from kbbatch.manifest import is_read_only, load_manifest
 
     if not manifest_path.exists() and not manifest_path.is_symlink():
         return None
@@ -464,6 +464,24 @@ def _merged_plans(manifest_path: Path, folder: Path, planned_entries: dict[str, 
     return entries
 
 
+def _kept_crops_note(entry: ManifestEntry, source: Path) -> str | None:
+    """What a kept entry's crops will do to its photo, if it was resized or cropped since they
+    were made (a re-run of `plan` kept stale crops without a word)."""
+    made_for = entry.data.get("photo_size")
+    if not made_for or entry.excluded:
+        return None
+    try:
+        photo = read_image(source)
+        height, width = photo.shape[:2]
+        if entry.resized(width, height) == (1.0, 1.0):
+            return None
+    except (ImageReadError, ManifestError) as error:
+        return str(error)
+    return (f"{source}: its crops in {entry.manifest} were made for the photo at "
+            f"{made_for['width']}x{made_for['height']} px; it is {width}x{height} px now: the "
+            "render scales them (--replan plans it again)")
+
+
 def _with_own_fields(planned: dict, entry: ManifestEntry | None) -> dict:
     """A photo's new plan with the fields of its entry that planning does not set (its
     preset, duration, depth file)."""
@@ -479,7 +497,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     Into an existing manifest: its entries stay; a photo whose entry already has crops (or is
     excluded) keeps it unless replan; a planned photo's entry keeps the user's own fields, and
     is planned with its preset, duration and depth file."""
-    from kbbatch.manifest import ManifestError, plan_to_entry, write_manifest
+    from kbbatch.manifest import plan_to_entry, write_manifest
     from kbbatch.review import contact_sheet, draw_plan
 
     if manifest_path.is_dir():
@@ -501,7 +519,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         started = time.perf_counter()
         entry = existing.entry(source.name, source.parent) if existing else None
         if _keeps_its_entry(entry, replan):
-            results.append(PlanResult(str(source), "kept", entry=entry.data))
+            results.append(PlanResult(str(source), "kept", entry=entry.data,
+                                      note=_kept_crops_note(entry, source)))
             continue
         try:
             photo_preset, photo_options = apply_entry(entry, preset, options)
@@ -510,7 +529,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             working, _, depth = working_depth(photo, source, photo_options)
             plan = get_planner(photo_options.planner).plan(PlanRequest(working, depth,
                                                                        photo_preset))
-            planned = plan_to_entry(plan, photo.shape[1], working.shape[1])
+            planned = plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1])
             planned_entries[source.name] = planned
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"

@@ -59,7 +59,7 @@ class ManifestEntry:
             if self.data.get("units", "px") == "fraction":
                 scale_x, scale_y = source_width_px, source_height_px
             else:
-                scale_x = scale_y = 1.0
+                scale_x, scale_y = self.resized(source_width_px, source_height_px)
             width = crop["width"] * scale_x
             height = crop["height"] * scale_y if "height" in crop else width / aspect
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
@@ -74,6 +74,25 @@ class ManifestEntry:
             crops.append(source_crop.scaled(to_working))
         return Plan(crops[0], crops[1], easing=self.data.get("easing", easing),
                     planner="manifest", parallax=self.data.get("planner") != FLAT_PLANNER)
+
+
+    def resized(self, source_width_px: int, source_height_px: int) -> tuple[float, float]:
+        """How much the photo was enlarged across and down since its pixel crops were made
+        (1, 1 when the entry does not say for what size): crops made for a photo that has
+        been resized since framed a corner of it. A photo cropped or turned since (another
+        aspect) is refused: no scale maps its old crops onto it."""
+        made_for = self.data.get("photo_size")
+        if not made_for or self.data.get("units", "px") == "fraction":
+            return 1.0, 1.0
+        scale_x = source_width_px / made_for["width"]
+        scale_y = source_height_px / made_for["height"]
+        if abs(scale_x / scale_y - 1) > ASPECT_TOLERANCE:
+            raise ManifestError(
+                f"{self.where('photo_size')}: its crops were made for the photo at "
+                f"{made_for['width']}x{made_for['height']} px; it is {source_width_px}x"
+                f"{source_height_px} px now, cropped or turned since: plan it again "
+                "(kbbatch plan --replan) or edit its crops")
+        return scale_x, scale_y
 
 
 def _describe(crop: Crop) -> str:
@@ -271,8 +290,10 @@ def _check_planner(entry: ManifestEntry) -> None:
                             f"to {FLAT_PLANNER!r} to render these crops without parallax)")
 
 
-def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> dict[str, Any]:
-    """A plan as a manifest entry in source pixels (what `kbbatch plan` writes)."""
+def plan_to_entry(plan: Plan, source_width_px: int, source_height_px: int,
+                  working_width_px: int) -> dict[str, Any]:
+    """A plan as a manifest entry in source pixels (what `kbbatch plan` writes), with the
+    photo's size they are pixels of."""
     to_source = source_width_px / working_width_px
 
     def crop(c: Crop) -> dict[str, float]:
@@ -280,8 +301,8 @@ def plan_to_entry(plan: Plan, source_width_px: int, working_width_px: int) -> di
         return {"center_x": round(s.center_x_px, 2), "center_y": round(s.center_y_px, 2),
                 "width": round(s.width_px, 2), "height": round(s.height_px, 2)}
 
-    entry = {"units": "px", "start": crop(plan.start), "end": crop(plan.end),
-             "easing": plan.easing}
+    entry = {"units": "px", "photo_size": {"width": source_width_px, "height": source_height_px},
+             "start": crop(plan.start), "end": crop(plan.end), "easing": plan.easing}
     if not plan.parallax:
         entry["planner"] = FLAT_PLANNER
     return entry

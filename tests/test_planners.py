@@ -138,11 +138,50 @@ def test_crops_with_a_planner_are_refused_except_2d_which_drops_parallax(tmp_pat
     # What `kbbatch plan --planner 2d` writes renders as 2D again.
     request = request_for(1024, 576, "slideshow")
     flat = get_planner("2d").plan(request)
-    written = plan_to_entry(flat, 1024, 1024)
+    written = plan_to_entry(flat, 1024, 576, 1024)
     assert written["planner"] == "2d"
-    assert "planner" not in plan_to_entry(get_planner("center").plan(request), 1024, 1024)
+    assert "planner" not in plan_to_entry(get_planner("center").plan(request), 1024, 576, 1024)
     reread = load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": written}}))
     assert not reread.entry("a.jpg").plan(1024, 576, 1024, 16 / 9, "linear").parallax
+
+
+def test_crops_planned_for_a_photo_follow_it_when_resized_and_refuse_it_when_cropped(
+        tmp_path, quick_preset):
+    """`plan` writes pixel crops; the photo was then resized (a smaller export) and rendered
+    with the old crops: a close-up of its top-left corner, without a word."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(300, 450, 1)).save(folder / "cat.png")
+    manifest_path = tmp_path / "m.json"
+    options = ClipOptions(planner="center", threads=2)
+    plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
+    entry = load_manifest(manifest_path).entry("cat.png")
+    assert entry.data["photo_size"] == {"width": 450, "height": 300}
+    before = entry.plan(450, 300, 1024, quick_preset.aspect, "linear")
+    after = entry.plan(900, 600, 1024, quick_preset.aspect, "linear")  # the same in working px
+    for old, new in ((before.start, after.start), (before.end, after.end)):
+        assert new.center_x_px == pytest.approx(old.center_x_px, abs=0.01)
+        assert new.center_y_px == pytest.approx(old.center_y_px, abs=0.01)
+        assert new.width_px == pytest.approx(old.width_px, abs=0.01)
+    with pytest.raises(ManifestError, match=r"'photo_size': its crops were made for the photo "
+                                            r"at 450x300 px; it is 300x450 px now"):
+        entry.plan(300, 450, 1024, quick_preset.aspect, "linear")
+
+    Image.fromarray(textured_image(600, 900, 1)).save(folder / "cat.png")  # resized
+    results = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
+    assert [r.status for r in results] == ["kept"]  # kept, and said
+    assert "made for the photo at 450x300 px; it is 900x600 px now: the render scales" in \
+        results[0].note
+    report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
+                        manifest=load_manifest(manifest_path))
+    assert [r.status for r in report.results] == ["done"]
+    assert report.results[0].plan["start"]["width_px"] == pytest.approx(
+        2 * entry.data["start"]["width"], rel=0.01)
+    Image.fromarray(textured_image(600, 600, 1)).save(folder / "cat.png")  # cropped
+    report = run_folder(folder, tmp_path / "out2", quick_preset, options, show_progress=False,
+                        manifest=load_manifest(manifest_path))
+    assert [r.status for r in report.results] == ["failed"]
+    assert "made for the photo at 450x300 px; it is 600x600 px now" in report.results[0].error
 
 
 def test_keys_naming_no_photo_of_the_folder_are_reported_not_ignored(tmp_path, quick_preset):

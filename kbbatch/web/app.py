@@ -248,7 +248,7 @@ class ReviewSession:
                              preset, width, Path(entry.image))
         except CropTooSmallError as error:
             raise ManifestError(str(error)) from error
-        return plan_to_entry(plan, width, working_width)
+        return plan_to_entry(plan, width, height, working_width)
 
     # -- photos and plans ------------------------------------------------------------------
 
@@ -329,7 +329,7 @@ class ReviewSession:
         check_photo_size(photo.shape[1], photo.shape[0], preset, source)  # as plan and render
         working, _, depth = working_depth(photo, source, options)
         plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
-        return {"entry": plan_to_entry(plan, photo.shape[1], working.shape[1]),
+        return {"entry": plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1]),
                 "width_px": photo.shape[1], "height_px": photo.shape[0]}
 
     def start_planning(self) -> None:
