@@ -47,7 +47,7 @@ from kbbatch.pipeline import (
     LocalExecutor,
     apply_entry,
     check_photo_size,
-    clip_fingerprint,
+    clip_fingerprints,
     progress_bar,
     remove_stale_scratch,
     working_depth,
@@ -370,7 +370,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     try:
         fingerprint = source_fingerprint(source)
         content = file_sha256(source)
-        settings = clip_fingerprint(source, content, preset, options, entry)
+        settings = clip_fingerprints(source, content, preset, options, entry)
     except OSError as error:
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
@@ -380,7 +380,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         output = output_folder / name
         if not force and journal.is_up_to_date(source, fingerprint, settings, output):
             return ClipResult(str(source), str(output), "skipped", 0.0)
-        journal.start(source, fingerprint, settings, name, content)
+        journal.start(source, fingerprint, settings[0], name, content)
     except JournalError as error:
         return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
     replaces = previous is not None and previous.made_from_other_bytes(name, content, output)

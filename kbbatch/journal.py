@@ -289,9 +289,10 @@ class Journal:
         rows = self.connection.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state")
         return {state: 0 for state in STATES} | dict(rows.fetchall())
 
-    def is_up_to_date(self, source: Path, fingerprint: str, settings: str, output: Path) -> bool:
-        """Done with this photo and these settings, and the clip is the very file then written
-        (a truncated or replaced clip has another size or time)."""
+    def is_up_to_date(self, source: Path, fingerprint: str, settings: tuple[str, ...],
+                      output: Path) -> bool:
+        """Done with this photo and one of these settings' digests, and the clip is the very
+        file then written (a truncated or replaced clip has another size or time)."""
         job = self.get(source)
         if job is None or job.state != "done" or job.output != output.name:
             return False
@@ -299,7 +300,7 @@ class Journal:
             clip = source_fingerprint(output)
         except OSError:
             return False
-        return job.fingerprint == fingerprint and job.settings == settings and job.clip == clip
+        return job.fingerprint == fingerprint and job.settings in settings and job.clip == clip
 
     def clip_name(self, source: Path, content: str, preferred: str, folder: Path,
                   with_depth_images: bool = False) -> str:

@@ -683,7 +683,12 @@ def make_clip(
             if users:
                 result.note = users_files_note(users)
         else:
-            remove_stale_depth_images(output)
+            removed = remove_stale_depth_images(output)
+            if removed:
+                result.note = (f"{output.parent}: {' and '.join(p.name for p in removed)} "
+                               "removed: an earlier make of this clip wrote them with "
+                               "--save-depth, and they showed its old depth (--save-depth "
+                               "writes them again)")
         result.output = str(output)
         result.status = "done"
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
@@ -706,22 +711,31 @@ def make_clip(
     return result
 
 
-def clip_fingerprint(source: Path, content: str, preset: Preset, options: ClipOptions,
-                     entry: ManifestEntry | None) -> str:
+def clip_fingerprints(source: Path, content: str, preset: Preset, options: ClipOptions,
+                      entry: ManifestEntry | None) -> tuple[str, ...]:
     """The digest of every input of a clip (kbbatch.fingerprint): photo, depth file, models,
-    settings and the stages' code. Threads and device are left out: the frames do not depend
-    on them (the GPU renderer's are within 50 dB PSNR of the CPU's). Raises OSError when a
-    depth file named for the photo cannot be read."""
+    settings and the stages' code; then any other digest an up-to-date clip may have been
+    recorded with. Threads and device are left out: the frames do not depend on them (the
+    GPU renderer's are within 50 dB PSNR of the CPU's). Raises OSError when a depth file
+    named for the photo cannot be read."""
     from kbbatch.fingerprint import clip_inputs
 
     # The entry's own preset file is an input too: an edit to it makes a new clip. A bad
     # entry is make_clip's to report (the clip fails and is not skipped).
     with contextlib.suppress(ManifestError):
         preset, options = apply_entry(entry, preset, options)
-    # With --save-depth the maps are outputs too: asking for them makes the clip again.
-    settings = (asdict(preset), options.planner, entry.data if entry else None,
-                options.save_depth)
-    return clip_inputs(source, content, options.depth, settings).digest
+
+    def digest(save_depth: bool) -> str:
+        settings = (asdict(preset), options.planner, entry.data if entry else None,
+                    save_depth)
+        return clip_inputs(source, content, options.depth, settings).digest
+
+    # With --save-depth the maps are outputs too: asking for them makes the clip again. A clip
+    # made with them is the same clip without: a plain re-run made it again and removed the
+    # maps a user had saved for compositing.
+    if options.save_depth:
+        return (digest(True),)
+    return digest(False), digest(True)
 
 
 @dataclass(frozen=True)

@@ -70,7 +70,7 @@ from kbbatch.outputs import (
 from kbbatch.pipeline import (
     ClipOptions,
     ClipResult,
-    clip_fingerprint,
+    clip_fingerprints,
     make_clip,
     remove_stale_scratch,
 )
@@ -456,7 +456,7 @@ class JobRunner:
             try:
                 fingerprint = source_fingerprint(path)
                 content = file_sha256(path)
-                settings = clip_fingerprint(path, content, s.preset, options, entry)
+                settings = clip_fingerprints(path, content, s.preset, options, entry)
             except OSError as error:
                 inbox.forget(path)
                 result = ClipResult(str(path), None, "failed", 0.0,
@@ -474,7 +474,7 @@ class JobRunner:
                 log.info("%s: clip already complete, moving the photo", path.name)
                 self.move_source(path, DONE_FOLDER)
                 continue
-            self.journal.start(path, fingerprint, settings, name, content)
+            self.journal.start(path, fingerprint, settings[0], name, content)
             inbox.forget(path)
             note = clip_name_note(path, preferred, name)
             if note is not None:

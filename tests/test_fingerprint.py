@@ -14,7 +14,7 @@ from kbbatch.batch import run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.fingerprint import depth_inputs, file_sha256
 from kbbatch.manifest import manifest_from_data
-from kbbatch.pipeline import ClipOptions, cached_disparity, clip_fingerprint
+from kbbatch.pipeline import ClipOptions, cached_disparity, clip_fingerprints
 from kbbatch.presets import load_preset
 
 from .conftest import SHARED, shared_photos, textured_image
@@ -43,7 +43,7 @@ def photo(tmp_path, monkeypatch) -> Path:
 
 
 def fingerprint(photo: Path, options: ClipOptions = DEFAULTS, entry=None) -> str:
-    return clip_fingerprint(photo, file_sha256(photo), PRESET, options, entry)
+    return clip_fingerprints(photo, file_sha256(photo), PRESET, options, entry)[0]
 
 
 def depth_key(photo: Path, options: DepthOptions = DEFAULTS.depth) -> str:

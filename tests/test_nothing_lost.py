@@ -157,6 +157,33 @@ def test_a_made_clip_keeps_its_name_when_its_depth_maps_name_is_the_users(tmp_pa
     assert (out / "IMG_1.depth-preview.png").is_file()  # its other name was free
 
 
+def test_a_plain_run_after_save_depth_keeps_the_clips_and_their_maps(tmp_path, quick_preset):
+    """A user saved maps for compositing, then ran again without --save-depth to pick up one
+    new photo: every clip was made again and every map removed, without a word. The clips are
+    up to date and the maps stay; a clip made again for another reason says that its maps,
+    now stale, went."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    with_maps = replace(FAST, save_depth=True)
+    assert [r.status for r in run_folder(folder, out, quick_preset, with_maps, False).results
+            ] == ["done"]
+    maps = sorted(p.name for p in out.glob("a.*.png"))
+    assert maps == ["a.depth-preview.png", "a.disparity.png"]
+    photo(folder / "b.jpg", seed=2)
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    assert {Path(r.source).name: r.status for r in report.results} == {"a.jpg": "skipped",
+                                                                       "b.jpg": "done"}
+    assert sorted(p.name for p in out.glob("a.*.png")) == maps
+    photo(folder / "a.jpg", seed=3)  # edited: its maps would show the old photo's depth
+    [edited] = [r for r in run_folder(folder, out, quick_preset, FAST, False).results
+                if r.status == "done"]
+    assert not list(out.glob("a.*.png"))
+    assert "a.disparity.png and a.depth-preview.png removed" in edited.note
+    again = run_folder(folder, out, quick_preset, with_maps, False)  # asked for again: made
+    assert [r.status for r in again.results if Path(r.source).name == "a.jpg"] == ["done"]
+    assert sorted(p.name for p in out.glob("a.*.png")) == maps
+
+
 def test_ray_driver_never_writes_a_workers_map_over_the_users_file(tmp_path):
     """A worker makes its files in a folder of its own, so the driver writing them beside the
     clip is where a user's file of a map's name would be replaced."""
