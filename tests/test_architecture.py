@@ -11,7 +11,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 RUNNERS = {"kbbatch.batch", "kbbatch.watch", "kbbatch.ray_executor", "kbbatch.cli",
-           "kbbatch.__main__"}
+           "kbbatch.__main__", "kbbatch.entry"}
 """Modules that run many clips (or a command line); everything else makes or serves one clip."""
 
 
