@@ -7,6 +7,7 @@ such as kbbatch.ray_executor.RayExecutor.
 from __future__ import annotations
 
 import contextlib
+import datetime
 import json
 import os
 import time
@@ -86,6 +87,12 @@ class RunReport:
     device: str = "cpu"  # the --device setting; each clip says where it was rendered
     onnx_providers: dict[str, str] = field(default_factory=dict)
     """Each ONNX model this run used, and the onnxruntime provider its session ran on."""
+    started_at: str = ""  # UTC, ISO 8601
+    finished_at: str | None = None
+    """None in the report written as the run starts: left so, the run was killed (or runs)."""
+    not_started: list[str] = field(default_factory=list)
+    """Photos a stop (a signal, a full disk) left before they were begun: a stopped run's
+    report listed only the clips it made, and looked complete."""
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -104,10 +111,47 @@ class RunReport:
     def to_json(self) -> str:
         return json.dumps(
             {"folder": self.folder, "output_folder": self.output_folder, "preset": self.preset,
-             "stopped_by": self.stopped_by, "notes": self.notes, "device": self.device,
+             "started_at": self.started_at, "finished_at": self.finished_at,
+             "stopped_by": self.stopped_by, "not_started": self.not_started,
+             "notes": self.notes, "device": self.device,
              "onnx_providers": self.onnx_providers,
              "clips": [asdict(r) for r in self.results]}, indent=2,
         )
+
+    def write(self, output_folder: Path) -> str | None:
+        """Written atomically into output_folder; why not, if it could not be."""
+        try:
+            with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
+                temp_path.write_text(self.to_json(), encoding="utf-8")
+        except OSError as error:
+            return (f"{output_folder / REPORT_NAME}: report could not be written "
+                    f"({error.strerror or error})")
+        return None
+
+
+def last_run_lines(output_folder: Path) -> list[str]:
+    """What the folder's run report says of the last batch run, when it did not finish or was
+    stopped (for `kbbatch status`: counted from the journal alone, a run stopped before half
+    its photos looked complete)."""
+    try:
+        report = json.loads((output_folder / REPORT_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    if not isinstance(report, dict) or "started_at" not in report:
+        return []  # an earlier version's report
+    started = report["started_at"]
+    if report.get("finished_at") is None:
+        return [f"LAST RUN started {started} and did not finish (killed, or still running): "
+                "run again to finish"]
+    if not report.get("stopped_by"):
+        return []
+    left = report.get("not_started") or []
+    return [f"LAST RUN started {started}, stopped by {report['stopped_by']} at "
+            f"{report['finished_at']}; {len(left)} photo(s) not started: run again to finish"]
+
+
+def utc_now() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
 
 REPORT_NAME = "kbbatch-report.json"
@@ -212,6 +256,7 @@ def run_folder(
     from kbbatch.journal import FolderLock, Journal, JournalError, folder_key, photo_key
 
     executor = executor or LocalExecutor()
+    started_at = utc_now()
     remove_stale_scratch()
     # Both as the file system finds them (journal.photo_key): `-o x/../out` through a link
     # x, or an output folder inside the photo folder reached through a link, is where the
@@ -259,6 +304,10 @@ def run_folder(
     except JournalError as error:
         lock.release()
         raise OutputFolderError(str(error)) from error
+    # a report of the run as it starts: a run killed outright (kill -9, a power cut) leaves
+    # it, dated and unfinished, not an earlier run's report that looks like this one's
+    RunReport(str(folder_key(folder)), str(output_folder), preset.name, [], notes,
+              device=options.device, started_at=started_at).write(output_folder)
     names = output_names(scan.photos)
     bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
                        disable=not show_progress)
@@ -311,19 +360,20 @@ def run_folder(
                 results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
         journal.close()
         # the folder as it is found again: 'photos/../out' named no folder a user would look in
+        seen = {result.source for result in results}
+        not_started = [str(photo_key(photo)) for photo in scan.photos
+                       if str(photo_key(photo)) not in seen] if stop else []
         report = RunReport(str(folder_key(folder)), str(output_folder), preset.name,
-                           results, notes, stop.get("by"), options.device, providers_used())
+                           results, notes, stop.get("by"), options.device, providers_used(),
+                           started_at, utc_now(), not_started)
         if folder_identity(output_folder) != identity:  # not made again: the user's doing
             lock.release()
             raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
                                     "stopped there (the clips made before are where the "
                                     "folder went)")
-        try:
-            with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
-                temp_path.write_text(report.to_json(), encoding="utf-8")
-        except OSError as error:
-            report.notes.append(f"{output_folder / REPORT_NAME}: report could not be written "
-                                f"({error.strerror or error})")
+        unwritten = report.write(output_folder)
+        if unwritten:
+            report.notes.append(unwritten)
         lock.release()
     return report
 

@@ -22,6 +22,7 @@ from kbbatch.batch import (
     EmptyFolderError,
     RunReport,
     default_jobs,
+    last_run_lines,
     plan_folder,
     run_folder,
 )
@@ -595,5 +596,5 @@ def status(outbox: Path) -> None:
         lines = status_lines(outbox)
     except JournalError as error:  # damaged: said in one line, as render and watch say it
         raise click.ClickException(str(error)) from error
-    for line in lines:
+    for line in [*lines, *last_run_lines(outbox)]:
         click.echo(one_line(line))

@@ -551,14 +551,21 @@ def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
     # nothing runs there now: the killed run's photo is not shown as running
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout and "INTERRUPTED" in status.stdout, status.stdout
+    # the report is the killed run's, unfinished (an earlier run's report stayed, undated)
+    report = json.loads((out / "kbbatch-report.json").read_text())
+    assert report["started_at"] and report["finished_at"] is None
+    assert "did not finish" in status.stdout, status.stdout
     rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                            capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
+    report = json.loads((out / "kbbatch-report.json").read_text())
+    assert report["finished_at"] >= report["started_at"] and report["not_started"] == []
     assert sorted(out.glob(".*part*")) == sorted(users), "partial clips are still there"
     assert all(path.read_text() == "precious" for path in users)
     assert visible_clips(out) == ["p0.mp4", "p1.mp4"]
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout and "done 2" in status.stdout
+    assert "LAST RUN" not in status.stdout, status.stdout
 
 
 @pytest.mark.slow
@@ -581,8 +588,12 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
         report = json.loads((out / "kbbatch-report.json").read_text())
         [stopped] = [c for c in report["clips"] if c["status"] == "interrupted"]
         assert stopped["source"].endswith("p0.jpg") and "SIGINT" in stopped["error"]
+    # ... and the photo not begun (the report listed the made clips alone, status "done 1")
+    assert [Path(source).name for source in report["not_started"]] == ["p1.jpg"]
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "RUNNING" not in status.stdout, status.stdout
+    assert f"stopped by {stop_signal.name}" in status.stdout, status.stdout
+    assert "1 photo(s) not started: run again to finish" in status.stdout, status.stdout
 
 
 @pytest.mark.parametrize("command", ["render", "plan"])
