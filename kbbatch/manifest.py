@@ -62,6 +62,9 @@ class ManifestEntry:
                 scale_x, scale_y = self.resized(source_width_px, source_height_px)
             width = crop["width"] * scale_x
             height = crop["height"] * scale_y if "height" in crop else width / aspect
+            if not (width > 0 and height > 0):  # so small that it underflowed to nothing
+                raise ManifestError(f"{self.where(field)}: crop {crop['width']:.4g} wide is "
+                                    "too small to frame anything")
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
                 raise ManifestError(f"{self.where(field)}: aspect {width / height:.3f} differs "
                                     f"from the output's {aspect:.3f}")

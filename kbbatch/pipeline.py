@@ -177,15 +177,16 @@ def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Pre
             "photo, or a preset with a smaller output")
     if points <= MAX_CLOUD_POINTS:
         return
-    # needed scale is inversely proportional to the tightest crop: solve for the bound (in
-    # this order: for a crop of 1e-300 px, points overflow to inf, the product does not)
-    smallest_px = tightest_px * scale * (scene.width_px * scene.height_px
-                                         / MAX_CLOUD_POINTS) ** 0.5
+    # the scale a crop needs is inversely proportional to its width: the narrowest crop within
+    # the bound, computed without the scale (for a crop of 1e-307 px it overflows to inf)
+    largest_scale = (MAX_CLOUD_POINTS / (scene.width_px * scene.height_px)) ** 0.5
+    smallest_px = preset.width_px / (MAX_POINT_SPACING_PX * largest_scale) * to_source
+    cloud = f"a {points / 1e6:,.0f} M-point" if math.isfinite(points) else "an unbounded"
     raise CropTooSmallError(
         f"{photo_path or 'photo'}: a crop {tightest_px:.4g} px wide (of {source_width_px} px) "
-        f"is too tight for {preset.width_px} px output: it needs a {points / 1e6:,.0f} M-point "
-        f"cloud (limit {MAX_CLOUD_POINTS / 1e6:.0f} M); make the tightest crop at least "
-        f"{smallest_px:.0f} px wide")
+        f"is too tight for {preset.width_px} px output: it needs {cloud} point cloud (limit "
+        f"{MAX_CLOUD_POINTS / 1e6:.0f} M); make the tightest crop at least "
+        f"{math.ceil(smallest_px)} px wide")
 
 
 def check_photo_size(photo_width_px: int, photo_height_px: int, preset: Preset,
@@ -248,6 +249,10 @@ def prepare_scene(
     if not plan.parallax:
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))
+    # the cloud a crop needs, checked before any view is rendered from it (a crop of 1e-300
+    # px went through the risk's renders first: warnings of division by zero, and nonsense)
+    scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
+    check_cloud_size(scale, plan, scene, preset, photo.shape[1], photo_path)
     risk = assess_risk(working, depth, plan, scene)
     if risk.relief < 1.0 and risk.reasons:  # do no harm: less parallax, not a broken clip
         log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
@@ -257,8 +262,6 @@ def prepare_scene(
     timings["plan"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
-    check_cloud_size(scale, plan, scene, preset, photo.shape[1], photo_path)
     # The height follows the rounded width, so the cloud keeps the scale the views assume.
     cloud_width = round(width * scale)
     photo_cloud = resize_to(photo, cloud_width, round(height * cloud_width / width))

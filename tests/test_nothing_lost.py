@@ -696,9 +696,13 @@ def test_a_photo_too_narrow_for_the_output_says_so_not_which_crop_to_give(tmp_pa
 
 @pytest.mark.parametrize("end", [{"center_x": 320, "center_y": 180, "width": 20},
                                  {"center_x": 0.5, "center_y": 0.5, "width": 0.0001},
-                                 {"center_x": 0.5, "center_y": 0.5, "width": 1e-300}])
+                                 {"center_x": 0.5, "center_y": 0.5, "width": 1e-300},
+                                 {"center_x": 0.5, "center_y": 0.5, "width": 1e-307},
+                                 {"center_x": 0.5, "center_y": 0.5, "width": 5e-324}])
 def test_a_tiny_manifest_crop_is_refused_with_the_width_that_fits(tmp_path, end):
-    """Run under a 4 GB address-space limit: an unbounded cloud fails otherwise, not here."""
+    """Run under a 4 GB address-space limit: an unbounded cloud fails otherwise, not here.
+    At 1e-307 px the message said "an inf M-point cloud", "at least inf px" and came with a
+    divide-by-zero warning; at 5e-324 it blamed the crop's aspect."""
     folder = tmp_path / "in"
     photo(folder / "a.jpg", seed=1, height=360, width=640)
     units = "fraction" if end["width"] < 1 else "px"
@@ -716,9 +720,10 @@ def test_a_tiny_manifest_crop_is_refused_with_the_width_that_fits(tmp_path, end)
                           "--duration", "0.5"], capture_output=True, text=True, timeout=300,
                          preexec_fn=limit_memory)
     assert run.returncode == 1, run.stderr
-    assert "a.jpg" in run.stderr and "too tight" in run.stderr and "at least" in run.stderr, (
-        run.stderr)
-    assert "Traceback" not in run.stderr and "at least inf" not in run.stderr
+    assert "Traceback" not in run.stderr and "Warning" not in run.stderr, run.stderr
+    assert "a.jpg" in run.stderr and "too tight" in run.stderr, run.stderr
+    assert "make the tightest crop at least 81 px wide" in run.stderr, run.stderr
+    assert "inf" not in run.stderr.replace("info", ""), run.stderr
 
 
 # --- 8: permissions -------------------------------------------------------------------------

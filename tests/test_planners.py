@@ -305,6 +305,15 @@ def test_twin_photos_whose_names_differ_only_in_unicode_form_keep_their_own_entr
     assert made == [decomposed]
 
 
+def test_a_crop_too_small_for_floating_point_is_refused_by_name(tmp_path):
+    """Its height underflowed to 0 and the error blamed the crop's aspect."""
+    entry = load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": {
+        "start": {"center_x": 500, "center_y": 300, "width": 400},
+        "end": {"center_x": 500, "center_y": 300, "width": 5e-324}}}})).entry("a.jpg")
+    with pytest.raises(ManifestError, match=r"field 'end': crop 4.941e-324 wide is too small"):
+        entry.plan(1000, 600, 1024, 16 / 9, "linear")
+
+
 def test_crop_outside_the_photo_is_refused(tmp_path):
     path = write(tmp_path / "m.json", {"images": {"a.jpg": {
         "units": "px", "start": {"center_x": 100, "center_y": 100, "width": 400},
