@@ -11,6 +11,7 @@ import errno
 import json
 import math
 import os
+import sys
 import unicodedata
 from importlib import resources
 from pathlib import Path
@@ -62,7 +63,7 @@ class ManifestEntry:
                 scale_x, scale_y = self.resized(source_width_px, source_height_px)
             width = crop["width"] * scale_x
             height = crop["height"] * scale_y if "height" in crop else width / aspect
-            if not (width > 0 and height > 0):  # so small that it underflowed to nothing
+            if min(width, height) < sys.float_info.min:  # below floating point's precision
                 raise ManifestError(f"{self.where(field)}: crop {crop['width']:.4g} wide is "
                                     "too small to frame anything")
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
