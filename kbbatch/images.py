@@ -16,6 +16,7 @@ import re
 import shutil
 import stat
 import tempfile
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -245,8 +246,20 @@ def unreadable_reason(error: OSError) -> str:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """An 8-bit RGB array, upright as the camera's EXIF says, from any supported file."""
-    path = Path(path)
+    """An 8-bit RGB array, upright as the camera's EXIF says, from any supported file.
+
+    What the decoders warn of (Pillow: "Corrupt EXIF data") is logged with the file's name:
+    printed as Python warnings, they named no photo, twice per file in a plan and render."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            return _read_image(Path(path))
+        finally:
+            for warning in dict.fromkeys(str(w.message) for w in caught):
+                log.warning("%s: %s", path, warning)
+
+
+def _read_image(path: Path) -> np.ndarray:
     try:
         size = path.stat().st_size
     except OSError as error:

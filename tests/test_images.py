@@ -169,6 +169,26 @@ def test_a_wide_gamut_photo_is_read_in_srgb_by_its_embedded_profile(tmp_path):
     assert np.array_equal(read_image(tmp_path / "broken.png"), stored)
 
 
+def test_a_decoder_warning_names_the_photo(tmp_path, caplog):
+    """A JPEG whose EXIF block is damaged: Pillow's "Corrupt EXIF data" warning was printed
+    with no photo named."""
+    import logging
+    import warnings
+
+    path = tmp_path / "holiday.jpg"
+    Image.fromarray(np.full((40, 60, 3), 100, np.uint8)).save(path)
+    data = path.read_bytes()
+    exif = b"Exif\x00\x00II*\x00\x08\x00\x00\x00\xff\xff" + b"\x00" * 20  # 65535 entries
+    path.write_bytes(data[:2] + b"\xff\xe1" + (len(exif) + 2).to_bytes(2, "big") + exif
+                     + data[2:])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # none escapes unnamed
+        with caplog.at_level(logging.WARNING, logger="kbbatch"):
+            assert read_image(path).shape == (40, 60, 3)
+    assert any(str(path) in r.getMessage() and "EXIF" in r.getMessage()
+               for r in caplog.records), caplog.text
+
+
 def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
     """0-1 floats (a 32-bit TIFF from a raw converter) were divided by 255: a black clip."""
     ramp = np.tile(np.linspace(0.0, 1.0, 256, dtype=np.float32), (16, 1))
