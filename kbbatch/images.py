@@ -283,7 +283,8 @@ def _read_image(path: Path) -> np.ndarray:
                                      f"the last {TRUNCATED_JPEG_ROWS} rows or more are blank "
                                      "mid grey; if the picture really ends in a #808080 band, "
                                      "save it as PNG)")
-            if getattr(image, "n_frames", 1) > 1:  # an animated WebP, a multi-page TIFF
+            # an animated WebP, a multi-page TIFF (a camera's MPO holds its previews: no news)
+            if getattr(image, "n_frames", 1) > 1 and image.format != "MPO":
                 log.warning("%s: holds %d frames or pages; the first is used", path,
                             image.n_frames)
             image = ImageOps.exif_transpose(in_srgb(image))

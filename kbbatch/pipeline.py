@@ -125,6 +125,7 @@ class ClipResult:
     risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
     device: str | None = None  # where the frames were rendered
     full_folder: str | None = None  # "no_space": the folder whose disk had no room
+    preset: str | None = None  # what it was made with: a manifest entry's own, or the run's
 
 
 @dataclass(frozen=True)
@@ -656,6 +657,7 @@ def make_clip(
     result = ClipResult(str(source), None, "failed", 0.0)
     try:
         preset, options = apply_entry(entry, preset, options)
+        result.preset = preset.name
         clock = time.perf_counter()
         photo = read_image(source)
         timings["read"] = time.perf_counter() - clock
