@@ -93,6 +93,8 @@ class RunReport:
     not_started: list[str] = field(default_factory=list)
     """Photos a stop (a signal, a full disk) left before they were begun: a stopped run's
     report listed only the clips it made, and looked complete."""
+    unwritten: str | None = None
+    """Why the report itself could not be written, if so (the run is then incomplete)."""
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -371,9 +373,7 @@ def run_folder(
             raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
                                     "stopped there (the clips made before are where the "
                                     "folder went)")
-        unwritten = report.write(output_folder)
-        if unwritten:
-            report.notes.append(unwritten)
+        report.unwritten = report.write(output_folder)
         lock.release()
     return report
 

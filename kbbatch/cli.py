@@ -282,7 +282,9 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
-    sys.exit(1 if report.failed or report.interrupted else 0)  # incomplete either way
+    if report.unwritten:  # the clips are made, but whoever reads the report is not told
+        click.echo(f"Error: {report.unwritten}", err=True)
+    sys.exit(1 if report.failed or report.interrupted or report.unwritten else 0)
 
 
 def _check_depth_beside_photos(save_depth: bool, photos: Path, clips: Path) -> None:

@@ -157,6 +157,20 @@ def test_a_made_clip_keeps_its_name_when_its_depth_maps_name_is_the_users(tmp_pa
     assert (out / "IMG_1.depth-preview.png").is_file()  # its other name was free
 
 
+def test_a_report_that_cannot_be_written_fails_the_run(tmp_path):
+    """The clips were made, the report could not be (its name taken, a disk full after the
+    last clip): the run ended 0 with a note, and a cron job reading the report read an old
+    one."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    (out / "kbbatch-report.json").mkdir(parents=True)
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr
+    assert "kbbatch-report.json: report could not be written" in run.stderr, run.stderr
+    assert visible_clips(out) == ["a.mp4"]
+
+
 def test_a_plain_run_after_save_depth_keeps_the_clips_and_their_maps(tmp_path, quick_preset):
     """A user saved maps for compositing, then ran again without --save-depth to pick up one
     new photo: every clip was made again and every map removed, without a word. The clips are
