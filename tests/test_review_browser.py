@@ -198,6 +198,8 @@ def test_review_in_chromium_then_render_the_saved_manifest(tmp_path, monkeypatch
     for key in ("center_x", "center_y", "width"):
         assert after["start"][key] == pytest.approx(before["start"][key], abs=0.02)
     assert after["end"]["width"] < before["end"]["width"] - 10  # shrunk by the handle
+    # the size its crops are pixels of (an old entry's, kept, scaled them twice after a resize)
+    assert after["photo_size"] == {"width": first["width_px"], "height": first["height_px"]}
     moved_x = after["end"]["center_x"] - before["end"]["center_x"]
     moved_y = after["end"]["center_y"] - before["end"]["center_y"]
     # in the direction of the drag (less any clamping; the shrink moves the centre up a little)

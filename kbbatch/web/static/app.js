@@ -210,9 +210,13 @@ function fitted(crop, aspect, widthPx, heightPx) {
 }
 
 function commitCrops(name) {
+  // The crops shown are in the photo's pixels as it is now: the size saved with them says so
+  // (kept from an older entry, a photo resized since had its new crops scaled a second time).
   const plan = state.plans[name];
+  const p = photo(name);
   edit(name, (entry) => {
     entry.units = 'px';
+    entry.photo_size = {width: p.width_px, height: p.height_px};
     entry.start = {...plan.start};
     entry.end = {...plan.end};
   });
@@ -319,6 +323,7 @@ function resetToAuto() {
     delete entry.start;
     delete entry.end;
     delete entry.units;
+    delete entry.photo_size;
   });
   showAutoPlan(name);
 }
