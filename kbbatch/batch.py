@@ -145,11 +145,13 @@ def last_run_lines(output_folder: Path) -> list[str]:
     if report.get("finished_at") is None:
         return [f"LAST RUN started {started} and did not finish (killed, or still running): "
                 "run again to finish"]
-    if not report.get("stopped_by"):
-        return []
     left = report.get("not_started") or []
-    return [f"LAST RUN started {started}, stopped by {report['stopped_by']} at "
-            f"{report['finished_at']}; {len(left)} photo(s) not started: run again to finish"]
+    if not (report.get("stopped_by") or left):
+        return []
+    how = (f"stopped by {report['stopped_by']}" if report.get("stopped_by")
+           else "ended at its first failure (--fail-fast)")
+    return [f"LAST RUN started {started}, {how} at {report['finished_at']}; {len(left)} "
+            "photo(s) not started: run again to finish"]
 
 
 def utc_now() -> str:
@@ -362,9 +364,10 @@ def run_folder(
                 results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
         journal.close()
         # the folder as it is found again: 'photos/../out' named no folder a user would look in
+        # (every photo of a run through has a result; --fail-fast and stops leave some)
         seen = {result.source for result in results}
         not_started = [str(photo_key(photo)) for photo in scan.photos
-                       if str(photo_key(photo)) not in seen] if stop else []
+                       if str(photo_key(photo)) not in seen]
         report = RunReport(str(folder_key(folder)), str(output_folder), preset.name,
                            results, notes, stop.get("by"), options.device, providers_used(),
                            started_at, utc_now(), not_started)
@@ -374,6 +377,9 @@ def run_folder(
                                     "stopped there (the clips made before are where the "
                                     "folder went)")
         report.unwritten = report.write(output_folder)
+        if report.unwritten:  # the one written at the start would say the run never finished
+            with contextlib.suppress(OSError):
+                (output_folder / REPORT_NAME).unlink()
         lock.release()
     return report
 

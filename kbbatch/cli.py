@@ -274,6 +274,8 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo("\ninterrupted: no partial clip is left; run again to finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
     _print_summary(report)
+    if report.unwritten:  # the clips are made, but whoever reads the report is not told
+        click.echo(f"Error: {report.unwritten}", err=True)
     if report.stopped_by == DISK_FULL:
         click.echo(f"stopped: {report.no_space[0].error}; the photos after it were not "
                    "started: free some space and run again to finish", err=True)
@@ -282,8 +284,6 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
-    if report.unwritten:  # the clips are made, but whoever reads the report is not told
-        click.echo(f"Error: {report.unwritten}", err=True)
     sys.exit(1 if report.failed or report.interrupted or report.unwritten else 0)
 
 

@@ -171,6 +171,31 @@ def test_a_report_that_cannot_be_written_fails_the_run(tmp_path):
     assert visible_clips(out) == ["a.mp4"]
 
 
+def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finished(
+        tmp_path, quick_preset, monkeypatch):
+    """The disk filled between the report written at the start and the final one: the first
+    stayed, and `kbbatch status` said the run did not finish. (The final write fails here by
+    hand: a disk that fills at that moment and no other cannot be had reliably.)"""
+    from kbbatch.batch import RunReport, last_run_lines
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    writes = []
+    real_write = RunReport.write
+
+    def write_then_fail(report, output_folder):
+        writes.append(report.finished_at)
+        if report.finished_at is None:
+            return real_write(report, output_folder)
+        return f"{output_folder / 'kbbatch-report.json'}: report could not be written (full)"
+
+    monkeypatch.setattr(RunReport, "write", write_then_fail)
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    assert writes[0] is None and writes[1] is not None and report.unwritten
+    assert not (out / "kbbatch-report.json").exists()
+    assert last_run_lines(out) == []
+
+
 def test_a_plain_run_after_save_depth_keeps_the_clips_and_their_maps(tmp_path, quick_preset):
     """A user saved maps for compositing, then ran again without --save-depth to pick up one
     new photo: every clip was made again and every map removed, without a word. The clips are

@@ -71,6 +71,12 @@ def test_fail_fast_stops_at_the_first_failure(tmp_path, quick_preset):
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False, fail_fast=True)
     assert [r.status for r in report.results] == ["failed"]
     assert not visible_clips(tmp_path / "out")
+    # the photo it did not begin is said (the report looked complete, status too)
+    assert report.not_started == [str(folder / "b.jpg")]
+    from kbbatch.batch import last_run_lines
+
+    [line] = last_run_lines(tmp_path / "out")
+    assert "ended at its first failure (--fail-fast)" in line and "1 photo(s) not started" in line
 
 
 def test_a_20000_px_jpeg_is_decoded_small_and_a_png_bomb_is_refused(tmp_path):
