@@ -49,6 +49,7 @@ from kbbatch.pipeline import (
     apply_entry,
     check_photo_size,
     clip_fingerprints,
+    depth_images_missing,
     progress_bar,
     remove_stale_scratch,
     working_depth,
@@ -434,7 +435,8 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         previous = journal.job_of(source, content)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
-        if not force and journal.is_up_to_date(source, fingerprint, settings, output):
+        if not force and journal.is_up_to_date(source, fingerprint, settings, output) and not (
+                options.save_depth and depth_images_missing(output)):
             return ClipResult(str(source), str(output), "skipped", 0.0)
         journal.start(source, fingerprint, settings[0], name, content)
     except JournalError as error:

@@ -590,6 +590,15 @@ def users_files_note(users: list[Path]) -> str:
             "is not kbbatch's and is left as it is")
 
 
+def depth_images_missing(clip_path: Path) -> bool:
+    """Whether a depth image --save-depth writes beside this clip is not there (deleted since:
+    the clip, up to date, was skipped and the map never came back)."""
+    from kbbatch.images import depth_image_names
+
+    return any(not os.path.lexists(clip_path.with_name(name))
+               for name in depth_image_names(clip_path.name))
+
+
 def remove_stale_depth_images(clip_path: Path) -> list[Path]:
     """The depth images kbbatch wrote beside an earlier make of this clip, removed when it is
     made again without --save-depth: left, they showed the old photo beside the new clip.
@@ -692,8 +701,8 @@ def make_clip(
             if removed:
                 result.note = (f"{output.parent}: {' and '.join(p.name for p in removed)} "
                                "removed: an earlier make of this clip wrote them with "
-                               "--save-depth, and they showed its old depth (--save-depth "
-                               "writes them again)")
+                               "--save-depth, and this one does not (--save-depth writes "
+                               "them again)")
         result.output = str(output)
         result.status = "done"
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,

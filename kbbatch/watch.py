@@ -71,6 +71,7 @@ from kbbatch.pipeline import (
     ClipOptions,
     ClipResult,
     clip_fingerprints,
+    depth_images_missing,
     make_clip,
     remove_stale_scratch,
 )
@@ -469,7 +470,8 @@ class JobRunner:
             if previous is not None and previous.output == name:
                 preferred = name  # its own name, kept: nothing to note
             output = s.outbox / name
-            if self.journal.is_up_to_date(path, fingerprint, settings, output):
+            if self.journal.is_up_to_date(path, fingerprint, settings, output) and not (
+                    options.save_depth and depth_images_missing(output)):
                 inbox.forget(path)
                 log.info("%s: clip already complete, moving the photo", path.name)
                 self.move_source(path, DONE_FOLDER)

@@ -221,6 +221,10 @@ def test_a_plain_run_after_save_depth_keeps_the_clips_and_their_maps(tmp_path, q
     again = run_folder(folder, out, quick_preset, with_maps, False)  # asked for again: made
     assert [r.status for r in again.results if Path(r.source).name == "a.jpg"] == ["done"]
     assert sorted(p.name for p in out.glob("a.*.png")) == maps
+    (out / "a.disparity.png").unlink()  # deleted: the clip, up to date, was skipped for good
+    again = run_folder(folder, out, quick_preset, with_maps, False)
+    assert [r.status for r in again.results if Path(r.source).name == "a.jpg"] == ["done"]
+    assert sorted(p.name for p in out.glob("a.*.png")) == maps
 
 
 def test_ray_driver_never_writes_a_workers_map_over_the_users_file(tmp_path):
