@@ -150,6 +150,7 @@ class ReviewSession:
         self._hashes: dict[tuple[str, int, int, int, int], str] = {}
         self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kbbatch-plan")
+        self._stopping = False
 
     # -- the manifest ----------------------------------------------------------------------
 
@@ -347,10 +348,13 @@ class ReviewSession:
         except RequestError as error:
             state.status, state.error = "failed", error.message
         except Exception as error:  # one photo must never stop the others
+            if self._stopping:  # Ctrl-C: the planner's own threads refused, nothing is wrong
+                return
             log.exception("planning %s failed", name)
             state.status, state.error = "failed", f"{name}: {type(error).__name__}: {error}"
 
     def stop(self) -> None:
+        self._stopping = True
         self._worker.shutdown(wait=False, cancel_futures=True)
         if self._scratch is not None:
             self._scratch.cleanup()
