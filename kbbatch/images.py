@@ -329,20 +329,22 @@ def _srgb_profile() -> ImageCms.ImageCmsProfile:
 
 
 FLOAT_RANGE_PERCENTILE = 99.0
-"""A float image's range (0-1, 0-255 or 0-65535) is the smallest that holds this percentile of
-its pixels."""
+FLOAT_HEADROOM = 16.0
+"""A float image is 0-1 when its brightest pixel is at most 1, or at most FLOAT_HEADROOM with
+FLOAT_RANGE_PERCENTILE of its pixels at most 1 (highlights above white, as an HDR merge or a
+raw converter writes them, clipped); else 0-255, or 0-65535 above 255. (A dark 0-255 star
+field, its sky below 1 and its stars at 255, stays 0-255.)"""
 
 
 def _to_8bit(values: np.ndarray, is_float: bool, is_16bit: bool) -> np.ndarray:
-    """Pixel values of a wide type in 0..255. Floats have no fixed range: it is judged by the
-    bulk of the pixels, not the brightest one (a 0-1 image with a few highlights above 1, as
-    a raw converter or a stack writes, was read as 0-255 and came out almost black); what
+    """Pixel values of a wide type in 0..255. Floats have no fixed range (FLOAT_HEADROOM): a
+    0-1 image with a few highlights above 1 was read as 0-255 and came out almost black; what
     lies above the range is clipped."""
     values = np.nan_to_num(values.astype(np.float64), posinf=0.0, neginf=0.0)
-    level = (float(np.percentile(values, FLOAT_RANGE_PERCENTILE)) if is_float
-             else float(values.max()))
-    peak = 65535.0 if is_16bit or level > 255 else 255.0
-    if is_float and level <= 1.0:
+    top = float(values.max())
+    peak = 65535.0 if is_16bit or top > 255 else 255.0
+    if is_float and (top <= 1.0 or (top <= FLOAT_HEADROOM and
+                                    np.percentile(values, FLOAT_RANGE_PERCENTILE) <= 1.0)):
         peak = 1.0
     return np.clip(values / peak * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
@@ -350,10 +352,14 @@ def _to_8bit(values: np.ndarray, is_float: bool, is_16bit: bool) -> np.ndarray:
 def _read_with_opencv(path: Path) -> np.ndarray | None:
     """A TIFF Pillow cannot open (32-bit float RGB, as HDR merges save) read by OpenCV, or
     None. Its orientation tag is not applied."""
+    quiet = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # libtiff's own lines
     try:
         picture = read_image_bytes(path)
     except (OSError, cv2.error):
         return None
+    finally:
+        cv2.utils.logging.setLogLevel(quiet)
     if picture is None or picture.ndim not in (2, 3) or picture.size == 0:
         return None
     if picture.shape[0] * picture.shape[1] > MAX_SOURCE_PIXELS:
@@ -361,11 +367,19 @@ def _read_with_opencv(path: Path) -> np.ndarray | None:
                              f"the {MAX_SOURCE_PIXELS:,} px this tool decodes; downscale it first")
     if picture.ndim == 2:
         picture = picture[..., None]
+    alpha = picture[..., 3] if picture.shape[2] == 4 else None
     picture = picture[..., :3] if picture.shape[2] >= 3 else picture[..., :1]
     if picture.dtype != np.uint8:
-        picture = _to_8bit(picture, np.issubdtype(picture.dtype, np.floating),
-                           picture.dtype == np.uint16)
+        is_float = np.issubdtype(picture.dtype, np.floating)
+        picture = _to_8bit(picture, is_float, picture.dtype == np.uint16)
+        if alpha is not None:  # its own range: 0-1 for floats, the type's for integers
+            alpha = np.clip(np.nan_to_num(alpha.astype(np.float64)) * 255.0
+                            / (1.0 if is_float else np.iinfo(alpha.dtype).max), 0, 255)
     rgb = picture[..., ::-1] if picture.shape[2] == 3 else np.repeat(picture, 3, axis=2)
+    if alpha is not None:  # over the matte, as Pillow's images are
+        share = alpha.astype(np.float64)[..., None] / 255.0
+        rgb = rgb * share + np.float64(ALPHA_MATTE_RGB) * (1.0 - share) + 0.5
+        rgb = np.clip(rgb, 0, 255).astype(np.uint8)
     return np.ascontiguousarray(rgb)
 
 

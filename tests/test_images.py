@@ -199,11 +199,16 @@ def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
     Image.fromarray(ramp * 255.0, mode="F").save(tmp_path / "bytes.tif")  # 0-255 as before
     assert np.abs(read_image(tmp_path / "bytes.tif").astype(int) - read.astype(int)).max() <= 1
     hot = ramp.copy()
-    hot[0, :3] = (1.02, 4.0, 80.0)  # highlights above 1: it was read as 0-255, nearly black
+    hot[0, :3] = (1.02, 4.0, 12.0)  # highlights above 1: it was read as 0-255, nearly black
     Image.fromarray(hot, mode="F").save(tmp_path / "hot.tif")
     read_hot = read_image(tmp_path / "hot.tif")
     assert np.abs(read_hot[1:].astype(int) - read[1:].astype(int)).max() <= 1
     assert (read_hot[0, :3] == 255).all()  # clipped
+    stars = np.full((16, 256), 0.5, np.float32)  # a dark 0-255 sky, its stars at 255
+    stars[3, ::50] = 255.0
+    Image.fromarray(stars, mode="F").save(tmp_path / "stars.tif")
+    read_stars = read_image(tmp_path / "stars.tif")
+    assert read_stars[0, 0, 0] <= 1 and read_stars[3, 0, 0] == 255
     colour = np.dstack([ramp, ramp[:, ::-1], np.full_like(ramp, 0.5)])  # BGR for OpenCV
     colour[0, 0] = 3.0
     assert cv2.imwrite(str(tmp_path / "merged.tif"), colour)  # an HDR merge's float RGB TIFF
@@ -211,6 +216,12 @@ def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
     assert read_colour.shape == (16, 256, 3)
     assert np.abs(read_colour[1:, :, 2].astype(int) - read[1:, :, 0]).max() <= 1  # blue
     assert abs(int(read_colour[5, 10, 0]) - 128) <= 1  # red: 0.5
+    alpha = np.ones_like(ramp)
+    alpha[:, :128] = 0.0  # its left half transparent: over black, as other images
+    assert cv2.imwrite(str(tmp_path / "cutout.tif"), np.dstack([colour, alpha]))
+    read_cutout = read_image(tmp_path / "cutout.tif")
+    assert read_cutout[:, :128].max() == 0
+    assert np.array_equal(read_cutout[1:, 128:], read_colour[1:, 128:])
 
 
 def test_an_animated_photo_is_read_from_its_first_frame_and_says_so(tmp_path, caplog):
