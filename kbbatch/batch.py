@@ -132,6 +132,33 @@ class RunReport:
         return None
 
 
+CARRIED_FIELDS = ("preset", "depth_backend", "plan", "risk", "frames", "device")
+"""What the report says of a clip skipped as up to date, from the report of the run that made
+it: each re-run dropped the crops, depth backend and preset of every clip it skipped."""
+
+
+def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
+    """The clips the folder's last report describes as made (or carried), by source and clip."""
+    try:
+        report = json.loads((output_folder / REPORT_NAME).read_text(encoding="utf-8"))
+        clips = report["clips"] if isinstance(report, dict) else []
+        return {(clip["source"], clip["output"]): clip for clip in clips
+                if isinstance(clip, dict) and clip.get("status") in ("done", "skipped")
+                and clip.get("plan")}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
+def _as_made_before(result: ClipResult, made_before: dict[tuple[str, str], dict]
+                    ) -> ClipResult:
+    """A skipped clip with what the report of the run that made it said of it."""
+    before = made_before.get((result.source, result.output or ""))
+    if result.status != "skipped" or before is None:
+        return result
+    return replace(result, **{name: before.get(name) for name in CARRIED_FIELDS
+                              if before.get(name) is not None})
+
+
 def last_run_lines(output_folder: Path) -> list[str]:
     """What the folder's run report says of the last batch run, when it did not finish or was
     stopped (for `kbbatch status`: counted from the journal alone, a run stopped before half
@@ -309,6 +336,7 @@ def run_folder(
     except JournalError as error:
         lock.release()
         raise OutputFolderError(str(error)) from error
+    made_before = _clips_of_last_report(output_folder)
     # a report of the run as it starts: a run killed outright (kill -9, a power cut) leaves
     # it, dated and unfinished, not an earlier run's report that looks like this one's
     RunReport(str(folder_key(folder)), str(output_folder), preset.name, [], notes,
@@ -333,7 +361,7 @@ def run_folder(
             job = start_job(journal, photo_key(photo), output_folder, names[photo], preset,
                             options, entry, force)
             if isinstance(job, ClipResult):  # skipped, or failed before it could start
-                results.append(job)
+                results.append(_as_made_before(job, made_before))
                 bar.update()
                 if fail_fast and job.status == "failed":
                     return

@@ -196,6 +196,26 @@ def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finishe
     assert last_run_lines(out) == []
 
 
+def test_a_skipped_clip_keeps_what_the_report_said_of_it(tmp_path, quick_preset):
+    """Each re-run's report gave the clips it skipped no crops, depth backend or preset: a tool
+    reading the report lost them at the first re-run."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    [made] = run_folder(folder, out, quick_preset, FAST, False).results
+    photo(folder / "b.jpg", seed=2)
+    run_folder(folder, out, quick_preset, FAST, False)
+    clips = {Path(c["source"]).name: c
+             for c in json.loads((out / "kbbatch-report.json").read_text())["clips"]}
+    assert clips["a.jpg"]["status"] == "skipped" and clips["b.jpg"]["status"] == "done"
+    assert clips["a.jpg"]["plan"] == json.loads(json.dumps(made.plan))
+    assert (clips["a.jpg"]["depth_backend"], clips["a.jpg"]["preset"]) == (
+        made.depth_backend, made.preset)
+    (out / "kbbatch-report.json").unlink()  # nothing to carry: skipped, said as before
+    [a_again] = [r for r in run_folder(folder, out, quick_preset, FAST, False).results
+                 if Path(r.source).name == "a.jpg"]
+    assert a_again.status == "skipped" and a_again.plan is None
+
+
 def test_a_plain_run_after_save_depth_keeps_the_clips_and_their_maps(tmp_path, quick_preset):
     """A user saved maps for compositing, then ran again without --save-depth to pick up one
     new photo: every clip was made again and every map removed, without a word. The clips are

@@ -216,7 +216,8 @@ function commitCrops(name) {
   const p = photo(name);
   edit(name, (entry) => {
     entry.units = 'px';
-    entry.photo_size = {width: p.width_px, height: p.height_px};
+    if (p.width_px) entry.photo_size = {width: p.width_px, height: p.height_px};
+    else delete entry.photo_size;
     entry.start = {...plan.start};
     entry.end = {...plan.end};
   });
