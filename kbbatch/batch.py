@@ -26,6 +26,7 @@ from kbbatch.images import (
     broken_link_reason,
     read_image,
     scan_folder,
+    upright_size,
 )
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.models import providers_used
@@ -137,15 +138,23 @@ CARRIED_FIELDS = ("preset", "depth_backend", "plan", "risk", "frames", "device")
 it: each re-run dropped the crops, depth backend and preset of every clip it skipped."""
 
 
-def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
-    """The clips the folder's last report describes as made (or carried), by source and clip."""
+def _last_report(output_folder: Path) -> dict:
+    """The folder's run report as it is on disk ({} where there is none it can read)."""
     try:
         report = json.loads((output_folder / REPORT_NAME).read_text(encoding="utf-8"))
-        clips = report["clips"] if isinstance(report, dict) else []
+    except (OSError, ValueError):
+        return {}
+    return report if isinstance(report, dict) else {}
+
+
+def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
+    """The clips the folder's last report describes as made (or carried), by source and clip."""
+    clips = _last_report(output_folder).get("clips")
+    try:
         return {(clip["source"], clip["output"]): clip for clip in clips
                 if isinstance(clip, dict) and clip.get("status") in ("done", "skipped")
                 and clip.get("plan")}
-    except (OSError, ValueError, KeyError, TypeError):
+    except (KeyError, TypeError):
         return {}
 
 
@@ -163,12 +172,9 @@ def last_run_lines(output_folder: Path) -> list[str]:
     """What the folder's run report says of the last batch run, when it did not finish or was
     stopped (for `kbbatch status`: counted from the journal alone, a run stopped before half
     its photos looked complete)."""
-    try:
-        report = json.loads((output_folder / REPORT_NAME).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return []
-    if not isinstance(report, dict) or "started_at" not in report:
-        return []  # an earlier version's report
+    report = _last_report(output_folder)
+    if "started_at" not in report:
+        return []  # none, or an earlier version's
     started = report["started_at"]
     if report.get("finished_at") is None:
         return [f"LAST RUN started {started} and did not finish (killed, or still running): "
@@ -557,8 +563,7 @@ def _kept_crops_note(entry: ManifestEntry, source: Path) -> str | None:
     if not made_for or entry.excluded:
         return None
     try:
-        photo = read_image(source)
-        height, width = photo.shape[:2]
+        width, height = upright_size(source)
         if entry.resized(width, height) == (1.0, 1.0):
             return None
     except (ImageReadError, ManifestError) as error:

@@ -13,7 +13,7 @@ import functools
 import hashlib
 import json
 from collections.abc import Iterable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +81,14 @@ class ClipInputs:
     @property
     def digest(self) -> str:
         return digest_of(asdict(self))
+
+    def with_settings(self, settings: Any) -> ClipInputs:
+        """The same inputs under other settings (nothing read again)."""
+        return replace(self, settings=_settings_text(settings))
+
+
+def _settings_text(settings: Any) -> str:
+    return json.dumps(settings, sort_keys=True, default=str)
 
 
 def digest_of(*parts: Any) -> str:
@@ -186,4 +194,4 @@ def clip_inputs(photo_path: Path, photo_sha256: str, depth: DepthOptions, settin
     """Every input of one clip: the depth inputs, all models present, the settings (any
     JSON-able description of preset, planner and manifest entry) and the stages' code."""
     return ClipInputs(depth_inputs(photo_path, photo_sha256, depth), models_present(),
-                      json.dumps(settings, sort_keys=True, default=str), clip_code_version())
+                      _settings_text(settings), clip_code_version())

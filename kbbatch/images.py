@@ -259,6 +259,27 @@ def read_image(path: Path) -> np.ndarray:
                 log.warning("%s: %s", path, warning)
 
 
+EXIF_ORIENTATION = 0x0112
+TURNED_ORIENTATIONS = (5, 6, 7, 8)
+"""EXIF orientations that swap width and height (the camera held on its side)."""
+
+
+def upright_size(path: Path) -> tuple[int, int]:
+    """(width, height) of the photo read_image gives, from its header where Pillow reads one:
+    `plan` checking kept crops against each photo's size decoded every photo whole. (A JPEG
+    so large that it is decoded smaller, or a file Pillow cannot open, is read.)"""
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+            if width * height <= MAX_SOURCE_PIXELS:
+                turned = image.getexif().get(EXIF_ORIENTATION) in TURNED_ORIENTATIONS
+                return (height, width) if turned else (width, height)
+    except (OSError, ValueError, SyntaxError, UnidentifiedImageError):
+        pass
+    height, width = read_image(path).shape[:2]
+    return width, height
+
+
 def _read_image(path: Path) -> np.ndarray:
     try:
         size = path.stat().st_size

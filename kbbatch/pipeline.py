@@ -739,17 +739,16 @@ def clip_fingerprints(source: Path, content: str, preset: Preset, options: ClipO
     with contextlib.suppress(ManifestError):
         preset, options = apply_entry(entry, preset, options)
 
-    def digest(save_depth: bool) -> str:
-        settings = (asdict(preset), options.planner, entry.data if entry else None,
-                    save_depth)
-        return clip_inputs(source, content, options.depth, settings).digest
+    def settings(save_depth: bool) -> tuple:
+        return asdict(preset), options.planner, entry.data if entry else None, save_depth
 
+    inputs = clip_inputs(source, content, options.depth, settings(options.save_depth))
     # With --save-depth the maps are outputs too: asking for them makes the clip again. A clip
     # made with them is the same clip without: a plain re-run made it again and removed the
     # maps a user had saved for compositing.
     if options.save_depth:
-        return (digest(True),)
-    return digest(False), digest(True)
+        return (inputs.digest,)
+    return inputs.digest, inputs.with_settings(settings(True)).digest
 
 
 @dataclass(frozen=True)

@@ -169,6 +169,23 @@ def test_a_wide_gamut_photo_is_read_in_srgb_by_its_embedded_profile(tmp_path):
     assert np.array_equal(read_image(tmp_path / "broken.png"), stored)
 
 
+def test_upright_size_is_the_size_read_image_gives(tmp_path):
+    from kbbatch.images import upright_size
+
+    plain = tmp_path / "plain.jpg"
+    Image.fromarray(np.full((40, 60, 3), 100, np.uint8)).save(plain)
+    turned = tmp_path / "turned.jpg"
+    exif = Image.Exif()
+    exif[0x0112] = 6  # the camera held on its side
+    Image.fromarray(np.full((40, 60, 3), 100, np.uint8)).save(turned, exif=exif)
+    floats = tmp_path / "floats.tif"
+    assert cv2.imwrite(str(floats), np.full((30, 50, 3), 0.5, np.float32))  # Pillow cannot
+    for path in (plain, turned, floats):
+        height, width = read_image(path).shape[:2]
+        assert upright_size(path) == (width, height), path
+    assert upright_size(turned) == (40, 60)
+
+
 def test_a_decoder_warning_names_the_photo(tmp_path, caplog):
     """A JPEG whose EXIF block is damaged: Pillow's "Corrupt EXIF data" warning was printed
     with no photo named."""
