@@ -45,3 +45,9 @@ def _compiled_code_cache() -> None:
 
 
 _compiled_code_cache()
+
+# onnxruntime 1.29 and later, on Linux and macOS, send usage telemetry to Microsoft unless
+# this is set before the library loads; on import they also wrote a session file into TMPDIR
+# and a database under ~/.cache/Microsoft. A batch tool run over people's photos sends nothing
+# anywhere: off unless the user sets ORT_DISABLE_TELEMETRY=0 themselves.
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")

@@ -443,6 +443,33 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     return drop_fragments(opened.astype(bool) | small[labels], keep)
 
 
+def with_bridges(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
+    """cleaned, with the strands of original that the cleaning cut and that join two of its
+    pieces put back. A dandelion's stalks (3 px) joined its seeds to its parachute: cut, they
+    stayed on the far ground while both ends moved with the card, and broke off. A strand with
+    one end free (a loose sliver of a suit) stays cut."""
+    strands = original.astype(bool) & ~cleaned
+    strand_count, strand_labels = cv2.connectedComponents(strands.astype(np.uint8),
+                                                          connectivity=8)
+    piece_count, pieces = cv2.connectedComponents(cleaned.astype(np.uint8), connectivity=8)
+    if strand_count <= 1 or piece_count <= 2:
+        return cleaned
+    # the pieces beside each strand pixel: the largest and smallest piece number around it
+    square = np.ones((3, 3), np.uint8)
+    pieces = pieces.astype(np.float32)
+    largest = cv2.dilate(pieces, square)
+    smallest = cv2.erode(np.where(cleaned, pieces, np.float32(piece_count)), square)
+    at = strands & (largest > 0)
+    pairs = np.unique(np.concatenate([
+        np.stack([strand_labels[at], largest[at].astype(np.int32)], axis=1),
+        np.stack([strand_labels[at], smallest[at].astype(np.int32)], axis=1)]), axis=0)
+    pairs = pairs[pairs[:, 1] < piece_count]
+    touched = np.bincount(pairs[:, 0], minlength=strand_count)
+    bridges = touched >= 2
+    bridges[0] = False
+    return cleaned | bridges[strand_labels]
+
+
 def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The background regions mask encloses (4-connected, off the image border) numbered from
     1, 0 elsewhere, and each number's area in pixels (0 for 0)."""
@@ -611,7 +638,7 @@ def find_instances(image: np.ndarray,
             snapped = np.where(jaw, mask if salient is None else mask & near_salient, snapped)
             if salient is not None:
                 snapped = snapped & ~thin_skirt(snapped, near_salient)
-        mask = clean_mask(snapped, keep=head)
+        mask = with_bridges(clean_mask(snapped, keep=head), snapped)
         # the face is its main pieces (a stray pixel of it is no face to keep whole)
         face = drop_fragments(mask & head, min_px=0) if head is not None else None
         mask = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)

@@ -13,6 +13,7 @@ from kbbatch.segment import (
     clean_mask,
     group_cards,
     own_pieces,
+    with_bridges,
 )
 
 from .conftest import SHARED, textured_image
@@ -41,6 +42,24 @@ def test_clean_mask_keeps_a_face_whole_even_where_it_is_thin():
     face[20:60, 50:150] = True
     assert not clean_mask(mask)[30:55, 98:101].any()  # without protection it is opened away
     assert clean_mask(mask, keep=face)[30:60, 98:101].all()
+
+
+def test_a_strand_joining_two_pieces_of_a_mask_is_put_back_a_loose_one_is_not():
+    """A dandelion's stalk (3 px) joins its seed to its parachute: cut as a sliver, it stayed
+    on the far ground while both ends moved with the card, and the move broke it."""
+    mask = np.zeros((240, 200), bool)
+    mask[20:80, 40:160] = True  # the parachute
+    mask[180:230, 80:120] = True  # the seed
+    mask[80:180, 99:102] = True  # the stalk between them
+    mask[50:120, 160:163] = True  # a loose strand, one end free
+    cleaned = clean_mask(mask)
+    assert not cleaned[100:160, 98:103].any()  # the opening cuts both strands
+    bridged = with_bridges(cleaned, mask)
+    assert bridged[85:175, 100].all(), "the stalk joining the two pieces was not put back"
+    assert not bridged[85:120, 160:163].any(), "a strand with a free end was put back"
+    assert (bridged & ~mask).sum() == 0  # nothing the mask did not have
+    count, _ = cv2.connectedComponents(bridged.astype(np.uint8), connectivity=8)
+    assert count - 1 == 1
 
 
 def test_an_instance_keeps_its_own_pieces_not_its_neighbours():

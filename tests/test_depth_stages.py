@@ -280,6 +280,32 @@ def test_a_salient_card_takes_back_the_half_salient_notch_isnet_left_in_it():
     assert not (close_notches(guitar & ~other, saliency, other) & other).any()
 
 
+def test_a_salient_cards_stalks_go_with_it_and_do_not_make_it_a_frame():
+    """Two dandelion seeds: parachutes above, seeds below, joined by 3 px stalks. The stalks
+    were cut from the card and stayed on the far ground, so the move broke them off the
+    seeds; as part of the card before it is judged upright, the loop they close around the
+    field between them would make it a frame (no card at all)."""
+    import cv2
+
+    from kbbatch.depth import SceneContext
+    from kbbatch.depth.popup import popup_disparity, salient_cards
+
+    saliency = np.full((240, 400), 0.02, np.float32)
+    cv2.ellipse(saliency, (200, 50), (120, 30), 0, 0, 360, 0.95, -1)  # the parachutes
+    cv2.rectangle(saliency, (140, 190), (260, 239), 0.95, -1)  # the seeds
+    for top_x, bottom_x in ((150, 170), (250, 230)):
+        cv2.line(saliency, (top_x, 75), (bottom_x, 195), 0.95, 2)  # the stalks, 3 px
+    context = SceneContext(np.zeros((240, 400, 3), np.uint8))
+    context.__dict__.update(saliency=saliency, instances=[])
+    cards = salient_cards(context)
+    assert len(cards) == 1
+    card = cards[0][0]
+    assert card[130, 158:163].any() and card[130, 238:243].any(), "a stalk is off the card"
+    disparity = popup_disparity(np.zeros((240, 400, 3), np.uint8), cards)
+    assert np.ptp(disparity[card]) == 0  # one card, stalks and all, at one depth
+    assert disparity[130, 200] < disparity[130, 160]  # the field between them stays behind
+
+
 def test_the_ground_plane_has_no_corner_and_stays_finite_at_any_horizon():
     for horizon in (0.0, 0.3, 0.45, 1.0):
         column = ground_plane_disparity(400, 2, horizon)[:, 0].astype(np.float64)

@@ -258,3 +258,37 @@ def test_models_list_says_damaged_and_how_to_mend_a_model_with_no_download(tmp_p
     assert re.search(r"isnet-dis-medium +salient +DAMAGED", listed.output), listed.output
     assert "put the real isnet_dis_medium.onnx there (it has no single-file download" in \
         listed.output  # `models pull` cannot fetch it: that advice was a dead end
+
+
+def test_running_a_network_sends_no_telemetry_and_leaves_no_files(tmp_path):
+    """onnxruntime 1.29 and later send usage telemetry to Microsoft from Linux unless told not
+    to before they load; on import they wrote a session file into TMPDIR (a batch whose TMPDIR
+    was a small disk found a stray `.ses` there) and a database under ~/.cache/Microsoft."""
+    import os
+    import subprocess
+    import sys
+
+    model = tmp_path / "tiny.onnx"
+    model.write_bytes(tiny_depth_model())
+    home, temporary = tmp_path / "home", tmp_path / "tmp"
+    home.mkdir()
+    temporary.mkdir()
+    script = ("import kbbatch, numpy, onnxruntime; from kbbatch import models; "
+              f"session = models.session(__import__('pathlib').Path({str(model)!r})); "
+              "session.run(None, {'pixel_values': numpy.ones((1, 3, 8, 8), numpy.float32)}); "
+              "import os; print(os.environ['ORT_DISABLE_TELEMETRY'])")
+    environment = {key: value for key, value in os.environ.items()
+                   if key not in ("ORT_DISABLE_TELEMETRY", "XDG_CACHE_HOME")}
+    environment.update(HOME=str(home), TMPDIR=str(temporary))
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env=environment, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "1"
+    assert list(temporary.iterdir()) == []
+    assert list(home.rglob("*")) == [], "onnxruntime wrote its telemetry files"
+    # a user who wants onnxruntime's telemetry keeps their own setting
+    environment["ORT_DISABLE_TELEMETRY"] = "0"
+    kept = subprocess.run([sys.executable, "-c", "import os, kbbatch; "
+                           "print(os.environ['ORT_DISABLE_TELEMETRY'])"],
+                          capture_output=True, text=True, env=environment, timeout=120)
+    assert kept.stdout.strip() == "0", kept.stderr

@@ -12,7 +12,13 @@ import numpy as np
 
 from kbbatch.depth import DepthResult, SceneContext
 from kbbatch.depth.ramp import HORIZON_FRACTION, ground_plane_disparity
-from kbbatch.segment import SALIENT_THRESHOLD, clean_mask, enclosed_holes, group_cards
+from kbbatch.segment import (
+    SALIENT_THRESHOLD,
+    clean_mask,
+    enclosed_holes,
+    group_cards,
+    with_bridges,
+)
 
 HORIZON_RANGE = (0.15, 0.8)
 """The estimated horizon is kept within these fractions of the height, from the top."""
@@ -99,10 +105,13 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     count, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
     minimum = CARD_MIN_FRACTION * binary.size
     large = [k for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= minimum]
-    cards = [close_notches(clean_mask(labels == k), saliency,
-                           np.isin(labels, [other for other in large if other != k]))
+    cards = [(close_notches(clean_mask(labels == k), saliency,
+                            np.isin(labels, [other for other in large if other != k])), k)
              for k in large]
-    return [(card, True) for card in cards if card.sum() >= minimum and stands_up(card)]
+    # Strands joining a card's pieces go with it, once it is judged upright without them:
+    # a dandelion's two stalks would make it a frame around the field between them.
+    return [(with_bridges(card, labels == k), True) for card, k in cards
+            if card.sum() >= minimum and stands_up(card)]
 
 
 def close_notches(mask: np.ndarray, saliency: np.ndarray, others: np.ndarray) -> np.ndarray:
