@@ -2,6 +2,7 @@
 much the pop-up cards change.
 
     KBBATCH_MODELS=../shared/models .venv/bin/python benchmarks/bench_saliency.py [--sizes 768 640]
+        [--aspect] [--no-int8]
 
 ISNet is most of the depth stage with the segmentation models (issue 10's goal: depth, plan
 and fill within 3 s a photo on 2 cores). Its export fixes the input at 1024 px and casts to
@@ -9,6 +10,8 @@ fp16 around every layer. The variants, each built here in a temporary folder fro
 cached model (needs the `onnx` package of the test extra):
 - `any-N`: the graph with its traced resize sizes made relative to the input (the same
   output to the bit at 1024), run at N x N;
+- `aspect-1024` (with --aspect): the same graph at 1024 on the long side and the photo's
+  own aspect, fewer pixels for a photo that is not square;
 - `int8`: fp32 weights, then onnxruntime's static QDQ quantisation (uint8 activations, int8
   weights, min/max ranges), calibrated on the even-numbered photos and scored on the odd
   ones only, so its score is on photos it never saw.
@@ -142,8 +145,10 @@ def int8_graph(fp32: Path, target: Path, calibration: list[Path]) -> None:
                     calibrate_method=CalibrationMethod.MinMax)
 
 
-def session_mask(path: Path, side: int) -> Callable[[np.ndarray], np.ndarray]:
-    """A stand-in for segment.salient_mask running another graph at side x side."""
+def session_mask(path: Path, side: int, keep_aspect: bool = False
+                 ) -> Callable[[np.ndarray], np.ndarray]:
+    """A stand-in for segment.salient_mask running another graph at side x side, or with
+    keep_aspect at side on the long side and the photo's aspect (in multiples of 32)."""
     import onnxruntime
 
     options = onnxruntime.SessionOptions()
@@ -155,7 +160,12 @@ def session_mask(path: Path, side: int) -> Callable[[np.ndarray], np.ndarray]:
     spec = models.REGISTRY[MODEL]
 
     def salient(image: np.ndarray) -> np.ndarray:
-        batch = models.prepare_input(spec, image, (side, side))
+        height, width = image.shape[:2]
+        size = (side, side)
+        if keep_aspect:
+            short = max(32, round(side * min(width, height) / max(width, height) / 32) * 32)
+            size = (side, short) if width >= height else (short, side)
+        batch = models.prepare_input(spec, image, size)
         output = session.run(None, {session.get_inputs()[0].name: batch})[0][0, 0]
         return cv2.resize(output.astype(np.float32), (image.shape[1], image.shape[0]),
                           interpolation=cv2.INTER_LINEAR)
@@ -186,6 +196,9 @@ def disparity_with(salient: Callable[[np.ndarray], np.ndarray], image: np.ndarra
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[768, 640])
+    parser.add_argument("--aspect", action="store_true",
+                        help="also the any-size graph at 1024 on the long side, aspect kept")
+    parser.add_argument("--no-int8", action="store_true", help="skip the quantised variant")
     args = parser.parse_args()
     source = models.cached_path(MODEL)
     photos = sorted(p for p in PHOTOS.glob("*") if p.suffix.lower() in {".jpg", ".png"})
@@ -195,11 +208,14 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         any_size_graph(source, folder / "any.onnx")
-        fp32_graph(source, folder / "fp32.onnx")
-        int8_graph(folder / "fp32.onnx", folder / "int8.onnx", photos[0::2])
         variants = {f"any-{side}": session_mask(folder / "any.onnx", side)
                     for side in args.sizes}
-        variants["int8"] = session_mask(folder / "int8.onnx", 1024)
+        if args.aspect:
+            variants["aspect-1024"] = session_mask(folder / "any.onnx", 1024, keep_aspect=True)
+        if not args.no_int8:
+            fp32_graph(source, folder / "fp32.onnx")
+            int8_graph(folder / "fp32.onnx", folder / "int8.onnx", photos[0::2])
+            variants["int8"] = session_mask(folder / "int8.onnx", 1024)
         print("| photo | shipped s | " + " | ".join(f"{name} s / changed" for name in variants)
               + " |")
         print("|---" * (2 + len(variants)) + "|")
