@@ -182,10 +182,38 @@ def last_run_lines(output_folder: Path) -> list[str]:
     left = report.get("not_started") or []
     if not (report.get("stopped_by") or left):
         return []
+    left, waiting = _still_to_do(output_folder, left, report.get("finished_at"))
+    if not (left or waiting):  # all made since (another run, the daemon): nothing to finish
+        return []
     how = (f"stopped by {report['stopped_by']}" if report.get("stopped_by")
            else "ended at its first failure (--fail-fast)")
     return [f"LAST RUN started {started}, {how} at {report['finished_at']}; {len(left)} "
             "photo(s) not started: run again to finish"]
+
+
+def _still_to_do(output_folder: Path, sources: list[str], finished_at: str | None
+                 ) -> tuple[list[str], int]:
+    """The photos among sources that no run has made since finished_at, and how many jobs
+    wait in the journal (queued, or running when killed): a daemon that later made a stopped
+    run's photos in the same folder left `status` telling the user to run again."""
+    from kbbatch.journal import DONE_FOLDER, Journal, JournalError
+
+    try:
+        since = datetime.datetime.fromisoformat(str(finished_at)).timestamp()
+        journal = Journal(output_folder, read_only=True)
+    except (ValueError, JournalError):
+        return sources, 1
+    try:
+        made = [Path(job.source) for job in journal.jobs("done") if job.updated >= since]
+        waiting = len(journal.jobs("queued")) + len(journal.jobs("running"))
+    except JournalError:
+        return sources, 1
+    finally:
+        journal.close()
+    # the daemon's job follows its photo into the inbox's done folder
+    done = {str(path.parent.parent / path.name if path.parent.name == DONE_FOLDER else path)
+            for path in made}
+    return [source for source in sources if source not in done], waiting
 
 
 def utc_now() -> str:

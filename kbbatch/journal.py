@@ -18,6 +18,9 @@ from urllib.parse import quote_from_bytes, unquote_to_bytes
 
 JOURNAL_NAME = ".kbbatch-journal.sqlite"
 STATES = ("queued", "running", "done", "failed")
+DONE_FOLDER = "done"
+"""Where the daemon moves a photo it made a clip of (beside it in its inbox); its job follows
+it there."""
 CONTENT_NAME_HEX = 8
 """Hex digits of the photo's sha256 in a clip named by content (`IMG_0001.3fa2c9e1.mp4`)."""
 

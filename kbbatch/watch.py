@@ -43,6 +43,7 @@ from kbbatch.images import (
     unreadable_reason,
 )
 from kbbatch.journal import (
+    DONE_FOLDER,
     FolderBusyError,
     FolderLock,
     Journal,
@@ -80,7 +81,6 @@ from kbbatch.ray_executor import RayClipPool, RayExecutor
 
 log = logging.getLogger("kbbatch.watch")
 
-DONE_FOLDER = "done"
 FAILED_FOLDER = "failed"
 TEMPORARY_SUFFIXES = (".tmp", ".part", ".crdownload", ".download", ".partial", "~")
 LOOP_INTERVAL_S = 0.2

@@ -293,3 +293,32 @@ def test_a_photo_the_manifest_excludes_is_left_in_the_inbox_unrendered(tmp_path)
     assert clips_in(outbox) == ["a.mp4"]
     assert (inbox / "b.jpg").is_file() and (inbox / "done" / "a.jpg").is_file()
     assert log_path.read_text().count("b.jpg: excluded by the manifest") == 1
+
+
+def test_status_drops_a_stopped_runs_advice_once_the_daemon_made_its_photos(tmp_path):
+    """A batch run ended at its first failure (--fail-fast) into the daemon's outbox; the
+    daemon then made the photo it had not started. `kbbatch status` still said "LAST RUN ...
+    1 photo(s) not started: run again to finish"."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    preset = preset_file(tmp_path, 0.4)
+    (inbox / "a.jpg").write_bytes(b"")  # fails: the run stops there
+    shutil.copy(shared_photos(1)[0], inbox / "b.jpg")
+    batch = subprocess.run([sys.executable, "-m", "kbbatch", str(inbox), "-o", str(outbox),
+                            "--preset", str(preset), "--depth", "ramp", "--planner", "center",
+                            "--fail-fast", "--quiet"], capture_output=True, text=True,
+                           timeout=300)
+    assert batch.returncode == 1, batch.stderr
+
+    def status() -> str:
+        return subprocess.run([sys.executable, "-m", "kbbatch", "status", str(outbox)],
+                              capture_output=True, text=True, check=True).stdout
+
+    assert "1 photo(s) not started: run again to finish" in status()
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: (inbox / "done" / "b.jpg").exists(), 240, "the daemon to make b.jpg")
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["b.mp4"]
+    assert "LAST RUN" not in status()
