@@ -560,7 +560,7 @@ def _finite_seconds(context: click.Context, param: click.Parameter, value: float
 def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: bool, jobs: int | None,
           poll: bool, settle_s: float, keep_sources: bool, **shared) -> None:
     """Watch INBOX and turn every photo that arrives into a clip in --out, day and night."""
-    from kbbatch.watch import WatchSettings
+    from kbbatch.watch import DONE_FOLDER, FAILED_FOLDER, WatchSettings
     from kbbatch.watch import watch as run_daemon
 
     _log_to_terminal(logging.INFO, TIMED_LOG_FORMAT)
@@ -568,6 +568,11 @@ def watch(inbox: Path, outbox: Path, manifest_path: Path | None, save_depth: boo
     # daemon's to refuse, not a traceback here)
     if os.path.realpath(inbox) == os.path.realpath(outbox):
         raise click.UsageError(f"{outbox}: --out must be a folder other than the inbox")
+    for filed in (DONE_FOLDER, FAILED_FOLDER):  # clips among the filed photos or failures
+        folder = os.path.realpath(inbox / filed)
+        if os.path.commonpath([folder, os.path.realpath(outbox)]) == folder:
+            raise click.UsageError(f"{outbox}: --out must not be in the inbox's {filed}/ "
+                                   "folder, where the daemon files photos")
     local_jobs_max = _most_per_machine()
     if jobs is not None and jobs > local_jobs_max and shared.get("executor_name") != "ray":
         raise click.UsageError(f"--jobs {jobs}: at most {local_jobs_max} worker processes "

@@ -11,6 +11,7 @@ import errno
 import json
 import math
 import os
+import stat
 import sys
 import unicodedata
 from importlib import resources
@@ -228,12 +229,43 @@ def parse_manifest_text(text: str) -> Any:
     return data
 
 
+MANIFEST_BYTES_MAX = 256 << 20
+"""Largest manifest file read (about 600,000 entries): `--manifest /dev/zero` or a huge file
+given by mistake filled the memory (10 GB in 13 s) before any error."""
+
+
+def manifest_bytes(path: Path) -> bytes:
+    """A manifest file's bytes. Only a regular file is read, opened without waiting, so that a
+    named pipe given as the manifest is refused instead of waiting for a writer without a word
+    (`plan` already refused to write one)."""
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        status = os.fstat(descriptor)
+        if stat.S_ISDIR(status.st_mode):
+            raise ManifestContentError("is a folder; give the manifest's file name")
+        if not stat.S_ISREG(status.st_mode):
+            raise ManifestContentError("is not a regular file (a named pipe, socket or "
+                                       "device); not read")
+        data = b""
+        while len(data) <= MANIFEST_BYTES_MAX:
+            chunk = os.read(descriptor, 1 << 20)
+            if not chunk:
+                break
+            data += chunk
+    finally:
+        os.close(descriptor)
+    if len(data) > MANIFEST_BYTES_MAX:
+        raise ManifestContentError(f"is larger than any manifest (over "
+                                   f"{MANIFEST_BYTES_MAX >> 20} MiB); not read")
+    return data
+
+
 def load_manifest(path: Path) -> Manifest:
     """Read and validate a manifest; raises ManifestError naming the file, image and field."""
     try:
         version = file_version(Path(path))
         # utf-8-sig: a byte-order mark (Notepad writes one) is not an error
-        data = parse_manifest_text(Path(path).read_text(encoding="utf-8-sig"))
+        data = parse_manifest_text(manifest_bytes(Path(path)).decode("utf-8-sig"))
     except UnicodeDecodeError as error:
         raise ManifestError(f"{path}: is not UTF-8 text (byte {error.start}); save it as "
                             "UTF-8") from error
@@ -250,10 +282,10 @@ def load_manifest(path: Path) -> Manifest:
 def file_version(path: Path) -> tuple[int, int] | None:
     """A file's (mtime_ns, size), or None where it cannot be seen."""
     try:
-        stat = path.stat()
+        status = path.stat()
     except OSError:
         return None
-    return stat.st_mtime_ns, stat.st_size
+    return status.st_mtime_ns, status.st_size
 
 
 def manifest_from_data(data: Any, path: Path) -> Manifest:

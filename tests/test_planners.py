@@ -254,6 +254,43 @@ def test_a_manifest_that_is_not_utf8_is_a_clear_error_and_a_bom_is_fine(tmp_path
     assert load_manifest(tmp_path / "bom.json").entry("a.jpg") is not None
 
 
+def test_a_manifest_that_is_a_pipe_a_device_or_too_large_is_refused_at_once(tmp_path,
+                                                                          monkeypatch):
+    """`--manifest` naming a named pipe waited for a writer without a word (render and
+    review), and `/dev/zero` filled the memory (10 GB in 13 s) before any error."""
+    import threading
+
+    from kbbatch import manifest as manifest_module
+
+    pipe = tmp_path / "pipe.json"
+    os.mkfifo(pipe)
+    outcome: list[BaseException] = []
+
+    def load() -> None:
+        try:
+            load_manifest(pipe)
+        except ManifestError as error:
+            outcome.append(error)
+
+    reader = threading.Thread(target=load, daemon=True)
+    reader.start()
+    reader.join(10)
+    if reader.is_alive():  # let the blocked reader go before failing
+        with open(pipe, "w"):  # noqa: PTH123 - the writer end of the pipe
+            pass
+        pytest.fail("reading a manifest that is a named pipe waited for a writer")
+    assert "pipe.json: is not a regular file (a named pipe" in str(outcome[0])
+    with pytest.raises(ManifestError, match="/dev/zero: is not a regular file"):
+        load_manifest(Path("/dev/zero"))
+    with pytest.raises(ManifestError, match="is a folder"):
+        load_manifest(tmp_path)
+    big = tmp_path / "big.json"
+    big.write_text('{"version": 1, "images": {}}' + " " * 100)
+    monkeypatch.setattr(manifest_module, "MANIFEST_BYTES_MAX", 64)
+    with pytest.raises(ManifestError, match="big.json: is larger than any manifest"):
+        load_manifest(big)
+
+
 def test_a_manifest_key_names_its_photo_in_either_unicode_form(tmp_path):
     """`café.jpg` typed in a manifest (composed) and the photo a Mac wrote (decomposed) look
     the same: the entry was unused and the key reported as naming no photo."""

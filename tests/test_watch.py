@@ -322,3 +322,17 @@ def test_status_drops_a_stopped_runs_advice_once_the_daemon_made_its_photos(tmp_
         assert stop(daemon) == 0
     assert clips_in(outbox) == ["b.mp4"]
     assert "LAST RUN" not in status()
+
+
+def test_the_daemon_refuses_an_outbox_in_its_own_done_or_failed_folder(tmp_path):
+    """Clips went into the inbox's failed/ (a user scanning it for failures found finished
+    clips) or among the photos filed in done/."""
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    for outbox in (inbox / "done", inbox / "failed" / "clips"):
+        run = subprocess.run([sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out",
+                              str(outbox), "--depth", "ramp"], capture_output=True, text=True,
+                             timeout=60)
+        assert run.returncode == 2, run.stderr
+        assert f"must not be in the inbox's {outbox.relative_to(inbox).parts[0]}/" in run.stderr
+        assert not outbox.exists()
