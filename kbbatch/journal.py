@@ -136,6 +136,19 @@ def free_space_note(folder: Path) -> str:
     return f"; the disk is full ({free // 1024} KB free)" if free < LOW_SPACE_BYTES else ""
 
 
+DAMAGE_WORDS = ("not a database", "malformed")
+"""What SQLite says of a journal file that is damaged (not merely locked or on a full disk)."""
+
+
+def _damage_advice(error: sqlite3.Error) -> str:
+    """The way forward from a damaged journal: it stopped every run into its folder, and the
+    error said only "file is not a database"."""
+    if not any(words in str(error) for words in DAMAGE_WORDS):
+        return ""
+    return ("; it is damaged: move it aside and run again (the clips in the folder are kept; "
+            "a photo whose clip name is taken gets one named by its content)")
+
+
 def _guarded(method):
     """Turn SQLite's errors into a JournalError that names the journal and the reason."""
     def wrapper(self, *args, **kwargs):
@@ -144,7 +157,8 @@ def _guarded(method):
         except sqlite3.Error as error:
             verb = "read" if getattr(self, "read_only", False) else "written"
             raise JournalError(f"{self.path}: job journal cannot be {verb} ({error})"
-                               f"{free_space_note(self.path.parent)}") from error
+                               f"{free_space_note(self.path.parent)}{_damage_advice(error)}"
+                               ) from error
     wrapper.__doc__ = method.__doc__
     return wrapper
 

@@ -1199,3 +1199,25 @@ def test_an_output_folder_named_through_a_link_and_dot_dot_is_written(tmp_path, 
     assert [r.status for r in report.results] == ["done"]
     assert visible_clips(tmp_path / "deep" / "out") == ["a.mp4"]
     assert report.output_folder == str(tmp_path / "deep" / "out")
+
+
+def test_a_damaged_journal_says_how_to_go_on_and_going_on_keeps_the_clips(tmp_path,
+                                                                         quick_preset):
+    """A journal that is no longer a database stopped every run into its folder with "file is
+    not a database" and nothing more. The advice given is followed here: the clip made
+    before stays as it was, and the photo's new clip takes a name of its own."""
+    from kbbatch.journal import JOURNAL_NAME
+    from kbbatch.outputs import OutputFolderError
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    run_folder(folder, out, quick_preset, FAST, False)
+    made = (out / "a.mp4").read_bytes()
+    (out / JOURNAL_NAME).write_bytes(b"\x13garbage, not a database" * 700)
+    with pytest.raises(OutputFolderError, match="it is damaged: move it aside and run again"):
+        run_folder(folder, out, quick_preset, FAST, False)
+    (out / JOURNAL_NAME).rename(tmp_path / "journal.bak")
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    assert [result.status for result in report.results] == ["done"]
+    assert (out / "a.mp4").read_bytes() == made
+    assert len(visible_clips(out)) == 2
