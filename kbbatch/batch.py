@@ -168,6 +168,16 @@ def _as_made_before(result: ClipResult, made_before: dict[tuple[str, str], dict]
                               if before.get(name) is not None})
 
 
+def _nearly_named(key: str, photos: list[Path]) -> str:
+    """The photo a manifest key names but for case, spaces around it or a folder before it:
+    the entry's crops were silently not used, and the photo was planned instead."""
+    wanted = Path(key.strip()).name.casefold()
+    near = sorted(photo.name for photo in photos if photo.name.casefold() == wanted)
+    if not near:
+        return ""
+    return f"; {near[0]!r} is there: a key must be its photo's exact file name"
+
+
 def last_run_lines(output_folder: Path) -> list[str]:
     """What the folder's run report says of the last batch run, when it did not finish or was
     stopped (for `kbbatch status`: counted from the journal alone, a run stopped before half
@@ -361,7 +371,8 @@ def run_folder(
     for name in missing:
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "
-                                  f"that file name in {folder} (keys are plain file names)"))
+                                  f"that file name in {folder} (keys are plain file names)"
+                                  f"{_nearly_named(name, scan.photos)}"))
     stop: dict = {}
     try:
         remove_partial_clips(output_folder)

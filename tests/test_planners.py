@@ -206,6 +206,28 @@ def test_keys_naming_no_photo_of_the_folder_are_reported_not_ignored(tmp_path, q
                    for e in errors), (key, errors)
 
 
+def test_a_key_naming_a_photo_but_for_case_or_spaces_points_to_it(tmp_path, quick_preset):
+    """A key in another case (a camera's IMG_0001.JPG typed in lower case) or with a space
+    around it failed as "no photo of that file name" while the photo beside it was planned
+    without the entry's crops, and nothing said which photo it nearly named."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("IMG_0001.JPG", "b.jpg"):
+        Image.fromarray(textured_image(180, 320)).save(folder / name)
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {
+        "img_0001.jpg": {"planner": "2d"}, " b.jpg ": {"planner": "2d"},
+        "c.jpg": {"planner": "2d"}}}))
+    report = run_folder(folder, tmp_path / "out", quick_preset,
+                        ClipOptions(planner="center", threads=2), show_progress=False,
+                        manifest=load_manifest(manifest))
+    errors = {r.error.split("image ")[1].split(":")[0]: r.error for r in report.failed}
+    assert "'IMG_0001.JPG' is there: a key must be its photo's exact file name" in \
+        errors["'img_0001.jpg'"]
+    assert "'b.jpg' is there" in errors["' b.jpg '"]
+    assert " is there" not in errors["'c.jpg'"]
+
+
 @pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e999"])
 def test_nan_and_infinity_in_a_manifest_are_refused_by_name(tmp_path, value):
     path = tmp_path / "m.json"
