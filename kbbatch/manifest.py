@@ -59,6 +59,13 @@ class ManifestEntry:
         for field in ("start", "end"):
             crop = self.data[field]
             if self.data.get("units", "px") == "fraction":
+                beyond = [name for name in ("center_x", "center_y", "width", "height")
+                          if abs(crop.get(name, 0.0)) > 1.0]
+                if beyond:  # pixel numbers under "units": "fraction" were blamed on the aspect
+                    raise ManifestError(f"{self.where(field)}: {beyond[0]} "
+                                        f"{crop[beyond[0]]:g} is no fraction of the photo "
+                                        "(0 to 1 with \"units\": \"fraction\"; pixel numbers "
+                                        "need \"units\": \"px\")")
                 scale_x, scale_y = source_width_px, source_height_px
             else:
                 scale_x, scale_y = self.resized(source_width_px, source_height_px)

@@ -122,6 +122,16 @@ def test_fraction_units_are_of_the_photos_width_and_height(tmp_path):
     assert plan.parallax
 
 
+def test_pixel_numbers_under_fraction_units_are_named_as_such(tmp_path):
+    """Pixel crops left under "units": "fraction" were refused as a wrong aspect."""
+    path = write(tmp_path / "m.json", {"images": {"a.jpg": {
+        "units": "fraction", "start": {"center_x": 800, "center_y": 450, "width": 882.7},
+        "end": {"center_x": 0.5, "center_y": 0.5, "width": 0.5}}}})
+    with pytest.raises(ManifestError, match=r"image 'a.jpg'.*'start'.*center_x 800 is no "
+                                            r"fraction of the photo .*\"units\": \"px\""):
+        load_manifest(path).entry("a.jpg").plan(1600, 900, 1024, 16 / 9, "linear")
+
+
 def test_crops_with_a_planner_are_refused_except_2d_which_drops_parallax(tmp_path):
     crops = {"start": CROP, "end": {**CROP, "width": 0.6}, "units": "fraction"}
     with pytest.raises(ManifestError, match=r"image 'a.jpg': field 'planner': the entry gives "
