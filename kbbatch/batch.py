@@ -549,7 +549,7 @@ class PlanResult:
     note: str | None = None  # e.g. its preview could not be written (the plan was)
 
 
-PLANNED_FIELDS = ("units", "photo_size", "start", "end", "planner")
+PLANNED_FIELDS = ("units", "photo_size", "photo_sha256", "start", "end", "planner")
 """What `kbbatch plan` writes into an entry (with easing, which a user's setting overrides);
 the rest of an existing entry (exclude, preset, duration, depth) is the user's and kept."""
 
@@ -598,13 +598,14 @@ def _merged_plans(manifest_path: Path, folder: Path, planned_entries: dict[str, 
 def _kept_crops_note(entry: ManifestEntry, source: Path) -> str | None:
     """What a kept entry's crops will do to its photo, if it was resized or cropped since they
     were made (a re-run of `plan` kept stale crops without a word)."""
-    made_for = entry.data.get("photo_size")
-    if not made_for or entry.excluded:
+    if entry.excluded:
         return None
+    made_for = entry.data.get("photo_size")
     try:
         width, height = upright_size(source)
-        if entry.resized(width, height) == (1.0, 1.0):
-            return None
+        if not made_for or entry.resized(width, height) == (1.0, 1.0):
+            another = entry.planned_for_another(source)  # the same size, other content
+            return f"{another}; kept as they were" if another else None
     except (ImageReadError, ManifestError) as error:
         return str(error)
     return (f"{source}: its crops in {entry.manifest} were made for the photo at "
@@ -627,6 +628,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     Into an existing manifest: its entries stay; a photo whose entry already has crops (or is
     excluded) keeps it unless replan; a planned photo's entry keeps the user's own fields, and
     is planned with its preset, duration and depth file."""
+    from kbbatch.fingerprint import file_sha256
     from kbbatch.manifest import plan_to_entry, write_manifest
     from kbbatch.review import contact_sheet, draw_plan
 
@@ -659,7 +661,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             working, _, depth = working_depth(photo, source, photo_options)
             plan = get_planner(photo_options.planner).plan(PlanRequest(working, depth,
                                                                        photo_preset))
-            planned = plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1])
+            planned = plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1],
+                                    file_sha256(source))
             planned_entries[source.name] = planned
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"

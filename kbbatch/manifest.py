@@ -42,6 +42,24 @@ class ManifestEntry:
     def has_crops(self) -> bool:
         return "start" in self.data
 
+    def planned_for_another(self, source: Path) -> str | None:
+        """What to say when the photo now under this entry's name is not the one its crops
+        were planned on (a second card's IMG_0001.JPG planned into the first card's
+        manifest kept the first one's hand-edited crops, and rendered with them)."""
+        planned_on = self.data.get("photo_sha256")
+        if not planned_on or not self.has_crops:
+            return None
+        from kbbatch.fingerprint import file_sha256
+
+        try:
+            if file_sha256(source) == planned_on:
+                return None
+        except OSError:
+            return None  # unreadable: said when it is read
+        return (f"{source}: its crops in {self.manifest} were planned on another photo of this "
+                "name (its content differs: another card's, or edited since); check them, or "
+                "plan it again (kbbatch plan --replan)")
+
     @property
     def excluded(self) -> bool:
         return bool(self.data.get("exclude", False))
@@ -334,9 +352,9 @@ def _check_planner(entry: ManifestEntry) -> None:
 
 
 def plan_to_entry(plan: Plan, source_width_px: int, source_height_px: int,
-                  working_width_px: int) -> dict[str, Any]:
+                  working_width_px: int, photo_sha256: str | None = None) -> dict[str, Any]:
     """A plan as a manifest entry in source pixels (what `kbbatch plan` writes), with the
-    photo's size they are pixels of."""
+    photo's size they are pixels of and, when given, the digest of the photo file."""
     to_source = source_width_px / working_width_px
 
     def crop(c: Crop) -> dict[str, float]:
@@ -346,6 +364,8 @@ def plan_to_entry(plan: Plan, source_width_px: int, source_height_px: int,
 
     entry = {"units": "px", "photo_size": {"width": source_width_px, "height": source_height_px},
              "start": crop(plan.start), "end": crop(plan.end), "easing": plan.easing}
+    if photo_sha256 is not None:
+        entry["photo_sha256"] = photo_sha256
     if not plan.parallax:
         entry["planner"] = FLAT_PLANNER
     return entry

@@ -583,6 +583,11 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str
     return users
 
 
+def joined_notes(note: str | None, more: str) -> str:
+    """Two notes of one clip, both said."""
+    return f"{note}; {more}" if note else more
+
+
 def users_files_note(users: list[Path]) -> str:
     """Why --save-depth left out a depth image."""
     names = " and ".join(path.name for path in users)
@@ -675,6 +680,7 @@ def make_clip(
             working_width, _ = compute_working_size(photo.shape[1], photo.shape[0])
             plan = entry.plan(photo.shape[1], photo.shape[0], working_width, preset.aspect,
                               preset.easing)
+            result.note = entry.planned_for_another(source)
         prepared = prepare_scene(photo, source, preset, options, timings, plan)
         result.depth_backend = prepared.depth_backend
         result.risk = prepared.risk.summary() if prepared.risk else None
@@ -695,14 +701,14 @@ def make_clip(
 
             users = save_depth_images(output, prepared.disparity, file_sha256(source))
             if users:
-                result.note = users_files_note(users)
+                result.note = joined_notes(result.note, users_files_note(users))
         else:
             removed = remove_stale_depth_images(output)
             if removed:
-                result.note = (f"{output.parent}: {' and '.join(p.name for p in removed)} "
-                               "removed: an earlier make of this clip wrote them with "
-                               "--save-depth, and this one does not (--save-depth writes "
-                               "them again)")
+                result.note = joined_notes(result.note, (
+                    f"{output.parent}: {' and '.join(p.name for p in removed)} removed: an "
+                    "earlier make of this clip wrote them with --save-depth, and this one "
+                    "does not (--save-depth writes them again)"))
         result.output = str(output)
         result.status = "done"
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,

@@ -49,6 +49,7 @@ from kbbatch.pipeline import (
     ClipOptions,
     ClipResult,
     apply_entry,
+    joined_notes,
     make_clip,
     remove_stale_depth_images,
     remove_stale_scratch,
@@ -269,7 +270,7 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
                 temp_path.write_bytes(data)
         result.output = str(job.output)
         if users:
-            result.note = users_files_note(users)
+            result.note = joined_notes(result.note, users_files_note(users))
         if not set(depth_image_names(job.output.name)) & set(outcome.files):
             remove_stale_depth_images(job.output)  # made again without --save-depth
     except OSError as error:

@@ -155,6 +155,41 @@ def test_crops_with_a_planner_are_refused_except_2d_which_drops_parallax(tmp_pat
     assert not reread.entry("a.jpg").plan(1024, 576, 1024, 16 / 9, "linear").parallax
 
 
+def test_a_second_cards_photo_of_the_same_name_and_size_is_told_from_the_first(
+        tmp_path, quick_preset):
+    """Two cards planned into one manifest.json: the second card's IMG_0001.JPG (same name,
+    same size) kept the first one's hand-edited crops without a word, and was rendered with
+    them. `plan` writes the photo's sha256 with its crops; another photo under the entry is
+    said when planned and when rendered."""
+    card1, card2 = tmp_path / "card1", tmp_path / "card2"
+    for card, seed in ((card1, 1), (card2, 2)):
+        card.mkdir()
+        Image.fromarray(textured_image(300, 450, seed)).save(card / "IMG_0001.JPG")
+    manifest_path = tmp_path / "manifest.json"
+    options = ClipOptions(planner="center", threads=2)
+    plan_folder(card1, manifest_path, quick_preset, options, show_progress=False)
+    document = json.loads(manifest_path.read_text())
+    entry = document["images"]["IMG_0001.JPG"]
+    assert len(entry["photo_sha256"]) == 64
+    entry["start"]["center_y"] = entry["end"]["center_y"] = 160.0  # edited by hand
+    manifest_path.write_text(json.dumps(document))
+    # the photo it was planned on: no note, in plan or render
+    [kept] = plan_folder(card1, manifest_path, quick_preset, options, show_progress=False)
+    assert kept.status == "kept" and kept.note is None
+    same = run_folder(card1, tmp_path / "out1", quick_preset, options, show_progress=False,
+                      manifest=load_manifest(manifest_path))
+    assert same.results[0].status == "done" and same.results[0].note is None
+    [kept] = plan_folder(card2, manifest_path, quick_preset, options, show_progress=False)
+    assert kept.status == "kept"
+    assert "were planned on another photo of this name" in kept.note and \
+        "kept as they were" in kept.note
+    other = run_folder(card2, tmp_path / "out2", quick_preset, options, show_progress=False,
+                       manifest=load_manifest(manifest_path))
+    assert other.results[0].status == "done"
+    assert "card2/IMG_0001.JPG: its crops in" in other.results[0].note
+    assert "planned on another photo of this name" in other.results[0].note
+
+
 def test_crops_planned_for_a_photo_follow_it_when_resized_and_refuse_it_when_cropped(
         tmp_path, quick_preset):
     """`plan` writes pixel crops; the photo was then resized (a smaller export) and rendered

@@ -218,6 +218,7 @@ function commitCrops(name) {
     entry.units = 'px';
     if (p.width_px) entry.photo_size = {width: p.width_px, height: p.height_px};
     else delete entry.photo_size;
+    delete entry.photo_sha256;  // the digest of the photo another plan was made on
     entry.start = {...plan.start};
     entry.end = {...plan.end};
   });
@@ -325,6 +326,7 @@ function resetToAuto() {
     delete entry.end;
     delete entry.units;
     delete entry.photo_size;
+    delete entry.photo_sha256;
   });
   showAutoPlan(name);
 }
