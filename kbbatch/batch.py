@@ -51,6 +51,7 @@ from kbbatch.pipeline import (
     check_photo_size,
     clip_fingerprints,
     depth_images_missing,
+    joined_notes,
     progress_bar,
     remove_stale_scratch,
     working_depth,
@@ -527,7 +528,7 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
     named = clip_name_note(job.source, job.preferred, job.output.name) if job.preferred else None
     replaced = (replaced_clip_note(job.source, job.output.name)
                 if job.replaces_other_bytes and result.status == "done" else None)
-    result.note = "; ".join(filter(None, (named, result.note, replaced))) or None
+    result.note = joined_notes(named, result.note, replaced)
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None
         # an interrupted clip is queued again, as one whose run was stopped, and so is one its

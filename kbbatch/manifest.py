@@ -271,18 +271,18 @@ def manifest_bytes(path: Path) -> bytes:
         if not stat.S_ISREG(status.st_mode):
             raise ManifestContentError("is not a regular file (a named pipe, socket or "
                                        "device); not read")
-        data = b""
+        data = bytearray()
         while len(data) <= MANIFEST_BYTES_MAX:
             chunk = os.read(descriptor, 1 << 20)
             if not chunk:
                 break
-            data += chunk
+            data += chunk  # in place: bytes += bytes copied the whole file at every chunk
     finally:
         os.close(descriptor)
     if len(data) > MANIFEST_BYTES_MAX:
         raise ManifestContentError(f"is larger than any manifest (over "
                                    f"{MANIFEST_BYTES_MAX >> 20} MiB); not read")
-    return data
+    return bytes(data)
 
 
 def load_manifest(path: Path) -> Manifest:

@@ -583,9 +583,9 @@ def save_depth_images(clip_path: Path, disparity: np.ndarray, source_sha256: str
     return users
 
 
-def joined_notes(note: str | None, more: str) -> str:
-    """Two notes of one clip, both said."""
-    return f"{note}; {more}" if note else more
+def joined_notes(*notes: str | None) -> str | None:
+    """The notes of one clip, all said (None when there is none)."""
+    return "; ".join(note for note in notes if note) or None
 
 
 def users_files_note(users: list[Path]) -> str:
