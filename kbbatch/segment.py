@@ -316,7 +316,8 @@ def own_pieces(mask: np.ndarray, core: np.ndarray, others: np.ndarray) -> np.nda
     return keep[labels]
 
 
-def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
+def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray,
+                         saliency: np.ndarray | None = None) -> np.ndarray:
     """mask with its outline moved onto the photo's colour edge, within SNAP_BAND_PX.
 
     The mask shrunk by the band is surely the object, the rest beyond it surely not; in
@@ -327,6 +328,10 @@ def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     moves is taken only where that puts the outline on a clearly stronger colour edge (where
     object and background look alike, the network's outline stays), it punches no holes, and
     only pieces joined to the sure inside are kept.
+
+    saliency (ISNet's map): what it holds salient in a piece mostly salient is never cut away. On a
+    rowing boat whose dark hull lay on dark shingle, the cut took the gunwale's bright edge for
+    the outline and gave the hull to the ground: the move tore the boat along the gunwale.
     """
     image = np.ascontiguousarray(image, dtype=np.uint8)
     original = mask.astype(bool)
@@ -345,6 +350,8 @@ def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     added = cv2.morphologyEx((proposed & ~original).astype(np.uint8), cv2.MORPH_OPEN, kernel)
     strength = _edge_strength(image)
     removed = _onto_stronger_edges(removed > 0, original & ~(removed > 0), strength)
+    if saliency is not None:
+        removed &= ~_salient_part(removed, saliency)
     added = _onto_stronger_edges(added > 0, ~(original | (added > 0)), strength)
     snapped = (original & ~removed) | added
     # The cut moves the outline; it punches no hole: what it gives to the background but is
@@ -362,6 +369,17 @@ def snap_to_colour_edges(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     joined[np.unique(labels[inside])] = True
     joined[0] = False
     return joined[labels]
+
+
+def _salient_part(pieces: np.ndarray, saliency: np.ndarray) -> np.ndarray:
+    """The salient pixels (SALIENT_THRESHOLD) of the connected pieces that are over half
+    salient: a hull the cut removed with a pocket of shingle beside it keeps the hull only."""
+    salient = saliency >= SALIENT_THRESHOLD
+    count, labels = cv2.connectedComponents(pieces.astype(np.uint8), connectivity=8)
+    mostly = 2 * np.bincount(labels[salient], minlength=count) > np.bincount(
+        labels.ravel(), minlength=count)
+    mostly[0] = False
+    return mostly[labels] & salient
 
 
 def _edge_strength(image: np.ndarray) -> np.ndarray:
@@ -632,7 +650,7 @@ def find_instances(image: np.ndarray,
     for detection, mask, head in zip(objects, masks, heads, strict=True):
         # fur and feathers are no colour edge either: an animal keeps the network's outline
         snapped = (mask if detection.class_name in FURRED_CLASSES
-                   else snap_to_colour_edges(mask, image))
+                   else snap_to_colour_edges(mask, image, salient_map))
         if detection.class_name == "person":  # nor is a jaw's retouched rim: it is kept
             jaw = jaw_region(mask, detection.box)
             snapped = np.where(jaw, mask if salient is None else mask & near_salient, snapped)

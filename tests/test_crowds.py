@@ -238,6 +238,38 @@ def test_a_pocket_of_backdrop_beside_a_shoulder_leaves_the_card():
     assert snapped[50:, 145:195].all(), "the helmet's white lining was cut away"
 
 
+def test_a_dark_part_that_isnet_holds_salient_stays_on_the_card():
+    """A rowing boat on shingle at dusk (a photo nobody here tuned for): its lit interior
+    met its dark hull along a bright gunwale, and the hull looked like the shingle, so the cut
+    took the gunwale for the outline and gave the hull to the ground. ISNet held the hull
+    salient throughout; the move tore the boat along the gunwale and smeared water over its
+    stern. Without ISNet's map the cut still decides alone."""
+    from kbbatch.segment import snap_to_colour_edges
+
+    height, width = 220, 260
+    rng = np.random.default_rng(5)
+    photo = np.empty((height, width, 3))
+    photo[:] = (55.0, 55.0, 60.0)  # the shingle
+    boat = np.zeros((height, width), bool)
+    boat[40:160, 50:210] = True
+    photo[40:142, 50:210] = (205.0, 130.0, 70.0)  # the lit interior
+    hull = np.zeros_like(boat)
+    hull[142:160, 50:210] = True
+    photo[hull] = (58.0, 54.0, 56.0)  # the hull, the shingle's colour
+    photo = np.clip(photo + rng.normal(0, 8, photo.shape), 0, 255)
+    photo = cv2.GaussianBlur(photo.astype(np.uint8), (0, 0), 1.0)
+    saliency = cv2.GaussianBlur(boat.astype(np.float32), (0, 0), 2.0)
+    alone = snap_to_colour_edges(boat, photo)
+    assert alone[hull].mean() < 0.1, "the case itself: the cut alone takes the hull away"
+    snapped = snap_to_colour_edges(boat, photo, saliency)
+    assert snapped[hull].mean() > 0.99, "the hull ISNet holds salient was cut off the boat"
+    assert (snapped & ~boat).sum() == 0
+    # A pocket ISNet does not hold salient still goes (the case the cut is there for).
+    pocket = np.zeros_like(boat)
+    pocket[160:178, 90:170] = True
+    assert not snap_to_colour_edges(boat | pocket, photo, saliency)[pocket].any()
+
+
 def test_real_cards_follow_the_peoples_outlines(monkeypatch):
     """On the two-people portrait the network masks' outlines ran through flat wall (median
     lightness gradient 68 and 95 along them, 35 % and 25 % of them on no edge at all);
