@@ -40,6 +40,16 @@ SOURCE_MARGIN_FRACTION = 0.05
 EDGE_SNAP_RADIUS_PX = 2
 """Depth-edge pixels snap to the nearest or farthest depth within this radius (working px)."""
 
+FILL_BEHIND_DISPARITY_PX = 0.75
+"""Fill points lie at least this much disparity (working px) behind the farthest surface the
+photo shows where they fall in its own view: beyond the renderer's blend (SOFT_Z_DISPARITY_PX),
+short of its crack test (CRACK_DISPARITY_PX). A fill is what the photo does not show, yet a
+crack filled at a cup's rim, level with it, blended into the rim's soft edge and broke the
+rim up in the start frame."""
+
+FILL_BEHIND_ROUNDS = 3
+"""... judged again this many times at most, as each move back shifts where it falls."""
+
 SOURCE_BAND_PX = 7
 """How far around a hole colour sources are screened for foreground, at the working size."""
 
@@ -721,14 +731,15 @@ def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
 
 
 def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray,
-                  enlargement: float = 1.0) -> PointCloud:
+                  enlargement: float = 1.0) -> tuple[PointCloud, np.ndarray]:
     """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
     edges; within their band a far opaque point with the background's colour and a near point
-    with the object's colour and its alpha matte."""
+    with the object's colour and its alpha matte. Also the depth of the farthest point at
+    each pixel (the surface a fill must stay behind)."""
     layers = split_layers(photo, depth, enlargement)
     alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
     whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
-    return (
+    cloud = (
         back_project(photo, layers.depth, view, keep=keep & ~layers.band)
         .extended(back_project(photo, whole_depth, view, keep=keep & layers.unsplit))
         .extended(back_project(layers.background, layers.far_depth, view,
@@ -736,6 +747,44 @@ def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.nda
         .extended(back_project(layers.foreground, layers.near_depth, view,
                                keep=keep & layers.near, alpha=alpha))
     )
+    farthest = np.where(layers.far, layers.far_depth, np.where(
+        layers.unsplit, whole_depth, np.where(layers.band, layers.near_depth, layers.depth)))
+    return cloud, farthest.astype(np.float32)
+
+
+def behind_the_photo(points: PointCloud, view: View, photo_view: View, farthest: np.ndarray,
+                     disparity_scale: float) -> PointCloud:
+    """Fill points (made at view) moved back along view's rays where, seen from the photo's
+    own view, they lie less than FILL_BEHIND_DISPARITY_PX behind its farthest surface.
+
+    Moved back, a point falls elsewhere in the photo's view, maybe before a farther surface:
+    judged again there, a few times (FILL_BEHIND_ROUNDS)."""
+    if len(points) == 0:
+        return points
+    # a point splats onto the 2 x 2 pixels around it: the farthest surface of any of them
+    farthest = cv2.dilate(farthest, np.ones((3, 3), np.uint8))
+    height, width = farthest.shape
+    x0, y0, z0 = (np.float32(value) for value in view.position)
+    x, y, z = points.x, points.y, points.z
+    for _ in range(FILL_BEHIND_ROUNDS):
+        cols = np.clip(np.floor(x * photo_view.focal_px / z + photo_view.principal_x_px),
+                       0, width - 1).astype(np.int64)
+        rows = np.clip(np.floor(y * photo_view.focal_px / z + photo_view.principal_y_px),
+                       0, height - 1).astype(np.int64)
+        surface = farthest[rows, cols]
+        limit = 1.0 / surface - FILL_BEHIND_DISPARITY_PX / disparity_scale
+        # where even the limit is no depth (a surface at the far end), half its disparity
+        limit = np.where(limit > 0, limit, 0.5 / surface)
+        ahead = 1.0 / z > limit
+        if not ahead.any():
+            break
+        # along the ray from view's centre, so the point still fills the pixel it was made for
+        moved = np.where(ahead, 1.0 / limit, z).astype(np.float32)
+        stretch = (moved - z0) / (z - z0)
+        x, y, z = x0 + (x - x0) * stretch, y0 + (y - y0) * stretch, moved
+    return PointCloud(np.ascontiguousarray(x, dtype=np.float32),
+                      np.ascontiguousarray(y, dtype=np.float32),
+                      np.ascontiguousarray(z, dtype=np.float32), points.colour, points.alpha)
 
 
 def build_extended_cloud(
@@ -758,8 +807,8 @@ def build_extended_cloud(
     if photo.shape[0] != cloud_height:  # a rounding apart: conform, views are sized this way
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
-    cloud = layered_cloud(photo, depth, photo_view, source_window(scene, plan, cloud_scale),
-                          enlargement)
+    cloud, farthest = layered_cloud(photo, depth, photo_view,
+                                    source_window(scene, plan, cloud_scale), enlargement)
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)
@@ -778,6 +827,7 @@ def build_extended_cloud(
         points, hole_count = extend_at_view(
             cloud, view, disparity_scale, region, 1.0 / cloud_scale, inpainter=inpainter
         )
+        points = behind_the_photo(points, view, photo_view, farthest, disparity_scale)
         holes.append(hole_count)
         added += len(points)
         cloud = cloud.extended(points)
