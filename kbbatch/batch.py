@@ -689,11 +689,15 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
 def _written_or_why(path: Path, picture) -> str | None:
     """A preview written, or why not: the plans are in the manifest either way, so a preview
     folder name taken by a file, or a disk full after the manifest, is a note, not a failed
-    photo (every photo was reported failed, and '0 plans written', with all of them there)."""
-    from kbbatch.images import write_image
+    photo (every photo was reported failed, and '0 plans written', with all of them there).
+    A file of the preview's name that kbbatch did not write (no mark) is the user's: kept."""
+    from kbbatch.images import is_users_file, write_image
 
+    if is_users_file(path):
+        return (f"{path}: not written over, kbbatch did not write it (previews of kbbatch "
+                "before December 2026 carry no mark either): move it away to have it written")
     try:
-        write_image(path, picture)
+        write_image(path, picture, own=True)
     except OSError as error:
         where = Path(error.filename) if error.filename else path
         return f"{where}: preview not written ({error.strerror or error})"

@@ -488,8 +488,12 @@ def disk_full_message(folder: Path, source: Path, reason: str | None = None) -> 
 
 
 OWN_PNG_SOFTWARE = "kbbatch"
-"""The PNG `Software` text of the images kbbatch writes beside clips (`--save-depth`): a file of
-such a name without it is the user's, never replaced."""
+"""The PNG `Software` text of the images kbbatch writes beside clips (`--save-depth`), and the
+comment of the JPEG previews `kbbatch plan` writes: a file of such a name without it is the
+user's, never replaced."""
+
+OWN_JPEG_QUALITY = 95
+"""Quality of the JPEG previews kbbatch writes (OpenCV's default, which wrote them before)."""
 
 
 SOURCE_SHA256_KEY = "kbbatch-source-sha256"
@@ -517,20 +521,40 @@ def is_own_png(path: Path) -> bool:
     return own_png_text(path) is not None
 
 
+def is_own_jpeg(path: Path) -> bool:
+    """Whether a file is a JPEG that write_image wrote marked as kbbatch's (its comment is
+    OWN_PNG_SOFTWARE; a link never is)."""
+    if path.is_symlink():
+        return False
+    try:
+        with Image.open(path) as image:
+            return (image.format == "JPEG"
+                    and image.info.get("comment") == OWN_PNG_SOFTWARE.encode())
+    except (OSError, ValueError, UnidentifiedImageError):
+        return False
+
+
 def is_users_file(path: Path) -> bool:
     """Something at path that kbbatch did not write (a link, a folder, a file without its
-    mark): never replaced by an image kbbatch writes beside a clip."""
-    return os.path.lexists(path) and not is_own_png(path)
+    mark): never replaced by an image kbbatch writes beside a clip or a plan."""
+    return os.path.lexists(path) and not (is_own_png(path) or is_own_jpeg(path))
 
 
 def write_image(path: Path, rgb: np.ndarray, own: bool = False,
                 text: dict[str, str] | None = None) -> None:
     """Write an RGB (or single-channel, 8 or 16-bit) image atomically; own: a PNG marked as
-    kbbatch's (OWN_PNG_SOFTWARE) and carrying `text` too, which OpenCV cannot write, so Pillow
-    writes it. OpenCV only encodes to memory and Python writes the bytes: cv2.imwrite took the
-    path as UTF-8 and crashed the process (a segfault) on a name that is not."""
+    kbbatch's (OWN_PNG_SOFTWARE) and carrying `text` too, or a JPEG with that mark as its
+    comment, which OpenCV cannot write, so Pillow writes it. OpenCV only encodes to memory and
+    Python writes the bytes: cv2.imwrite took the path as UTF-8 and crashed the process (a
+    segfault) on a name that is not."""
     path = Path(path)
     with atomic_output(path, path.suffix) as temp_path:
+        if own and path.suffix.lower() in (".jpg", ".jpeg"):
+            with temp_path.open("wb") as handle:
+                Image.fromarray(np.ascontiguousarray(rgb)).save(
+                    handle, format="JPEG", quality=OWN_JPEG_QUALITY,
+                    comment=OWN_PNG_SOFTWARE.encode())
+            return
         if own:
             from PIL.PngImagePlugin import PngInfo
 

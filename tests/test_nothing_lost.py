@@ -829,6 +829,32 @@ def test_plan_previews_of_same_stem_photos_do_not_collide(tmp_path, quick_preset
     assert previews == ["a.jpg.jpg", "a.jpg.png.jpg", "a.png.jpg", "b.jpg", "contact-sheet.png"]
 
 
+def test_a_users_file_in_the_previews_folder_is_never_written_over(tmp_path, quick_preset):
+    """`<manifest>-previews/` is kbbatch's by name, but a user may keep a file there (an
+    edited preview, notes): plan wrote its preview over any file of the preview's name. Its
+    own previews (marked) are still replaced by a new plan."""
+    from kbbatch.images import is_own_jpeg, is_own_png
+
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    photo(tmp_path / "in" / "b.jpg", seed=2)
+    manifest = tmp_path / "plans" / "manifest.json"
+    previews = tmp_path / "plans" / "manifest-previews"
+    previews.mkdir(parents=True)
+    users = previews / "a.jpg"
+    users.write_bytes(b"the user's own picture")
+    results = plan_folder(tmp_path / "in", manifest, quick_preset, FAST, False)
+    assert [r.status for r in results] == ["done", "done"]
+    assert users.read_bytes() == b"the user's own picture"
+    assert "not written over" in results[0].note and str(users) in results[0].note
+    assert results[1].note is None
+    assert is_own_jpeg(previews / "b.jpg") and is_own_png(previews / "contact-sheet.png")
+    first = (previews / "b.jpg").stat().st_mtime_ns
+    again = plan_folder(tmp_path / "in", manifest, quick_preset, FAST, False, replan=True)
+    assert again[1].status == "done" and again[1].note is None
+    assert (previews / "b.jpg").stat().st_mtime_ns > first, "its own preview was not renewed"
+    assert users.read_bytes() == b"the user's own picture"
+
+
 @pytest.mark.parametrize("names", [
     ("x.jpg", "x.png", "x.jpg.png"),  # a stem that is another photo's full name
     ("A.jpg", "a.jpg", "a.jpg.2.png"),  # names differing in case, and one like their number
