@@ -487,10 +487,10 @@ def disk_full_message(folder: Path, source: Path, reason: str | None = None) -> 
             f"({why}the photo is not at fault and stays queued)")
 
 
-OWN_PNG_SOFTWARE = "kbbatch"
-"""The PNG `Software` text of the images kbbatch writes beside clips (`--save-depth`), and the
-comment of the JPEG previews `kbbatch plan` writes: a file of such a name without it is the
-user's, never replaced."""
+OWN_MARK = "kbbatch"
+"""kbbatch's mark on the images it writes where a user's files may be: the PNG `Software` text
+of those beside clips (`--save-depth`), the comment of the JPEG previews of `kbbatch plan`. A
+file of such a name without it is the user's, never replaced."""
 
 OWN_JPEG_QUALITY = 95
 """Quality of the JPEG previews kbbatch writes (OpenCV's default, which wrote them before)."""
@@ -502,18 +502,26 @@ from: in a folder that also holds photos, `IMG_1.disparity.png` of one photo was
 map of another `IMG_1.jpg` (kbbatch.depth.file)."""
 
 
-def own_png_text(path: Path) -> dict[str, str] | None:
-    """The text of a PNG that write_image wrote marked as kbbatch's; None for any other file
-    (a link never is kbbatch's)."""
+def own_image_text(path: Path) -> dict[str, str] | None:
+    """The text of an image that write_image wrote marked as kbbatch's (a PNG's text; none for
+    a JPEG, whose comment is the mark alone); None for any other file (a link never is
+    kbbatch's)."""
     if path.is_symlink():
         return None
     try:
         with Image.open(path) as image:
-            if image.format != "PNG" or image.text.get("Software") != OWN_PNG_SOFTWARE:
-                return None
-            return dict(image.text)
+            if image.format == "PNG" and image.text.get("Software") == OWN_MARK:
+                return dict(image.text)
+            if image.format == "JPEG" and image.info.get("comment") == OWN_MARK.encode():
+                return {}
     except (OSError, ValueError, UnidentifiedImageError):
-        return None
+        pass
+    return None
+
+
+def own_png_text(path: Path) -> dict[str, str] | None:
+    """The text of a PNG that write_image wrote marked as kbbatch's; None for any other file."""
+    return own_image_text(path) or None  # a marked PNG's text holds the mark: never empty
 
 
 def is_own_png(path: Path) -> bool:
@@ -521,29 +529,16 @@ def is_own_png(path: Path) -> bool:
     return own_png_text(path) is not None
 
 
-def is_own_jpeg(path: Path) -> bool:
-    """Whether a file is a JPEG that write_image wrote marked as kbbatch's (its comment is
-    OWN_PNG_SOFTWARE; a link never is)."""
-    if path.is_symlink():
-        return False
-    try:
-        with Image.open(path) as image:
-            return (image.format == "JPEG"
-                    and image.info.get("comment") == OWN_PNG_SOFTWARE.encode())
-    except (OSError, ValueError, UnidentifiedImageError):
-        return False
-
-
 def is_users_file(path: Path) -> bool:
     """Something at path that kbbatch did not write (a link, a folder, a file without its
     mark): never replaced by an image kbbatch writes beside a clip or a plan."""
-    return os.path.lexists(path) and not (is_own_png(path) or is_own_jpeg(path))
+    return os.path.lexists(path) and own_image_text(path) is None
 
 
 def write_image(path: Path, rgb: np.ndarray, own: bool = False,
                 text: dict[str, str] | None = None) -> None:
     """Write an RGB (or single-channel, 8 or 16-bit) image atomically; own: a PNG marked as
-    kbbatch's (OWN_PNG_SOFTWARE) and carrying `text` too, or a JPEG with that mark as its
+    kbbatch's (OWN_MARK) and carrying `text` too, or a JPEG with that mark as its
     comment, which OpenCV cannot write, so Pillow writes it. OpenCV only encodes to memory and
     Python writes the bytes: cv2.imwrite took the path as UTF-8 and crashed the process (a
     segfault) on a name that is not."""
@@ -553,13 +548,13 @@ def write_image(path: Path, rgb: np.ndarray, own: bool = False,
             with temp_path.open("wb") as handle:
                 Image.fromarray(np.ascontiguousarray(rgb)).save(
                     handle, format="JPEG", quality=OWN_JPEG_QUALITY,
-                    comment=OWN_PNG_SOFTWARE.encode())
+                    comment=OWN_MARK.encode())
             return
         if own:
             from PIL.PngImagePlugin import PngInfo
 
             info = PngInfo()
-            info.add_text("Software", OWN_PNG_SOFTWARE)
+            info.add_text("Software", OWN_MARK)
             for key, value in (text or {}).items():
                 info.add_text(key, value)
             with temp_path.open("wb") as handle:

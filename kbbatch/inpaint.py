@@ -47,9 +47,6 @@ short of its crack test (CRACK_DISPARITY_PX). A fill is what the photo does not 
 crack filled at a cup's rim, level with it, blended into the rim's soft edge and broke the
 rim up in the start frame."""
 
-FILL_BEHIND_ROUNDS = 3
-"""... judged again this many times at most, as each move back shifts where it falls."""
-
 SOURCE_BAND_PX = 7
 """How far around a hole colour sources are screened for foreground, at the working size."""
 
@@ -755,35 +752,27 @@ def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.nda
 def behind_the_photo(points: PointCloud, view: View, photo_view: View, farthest: np.ndarray,
                      disparity_scale: float) -> PointCloud:
     """Fill points (made at view) moved back along view's rays where, seen from the photo's
-    own view, they lie less than FILL_BEHIND_DISPARITY_PX behind its farthest surface.
-
-    Moved back, a point falls elsewhere in the photo's view, maybe before a farther surface:
-    judged again there, a few times (FILL_BEHIND_ROUNDS)."""
+    own view, they lie less than FILL_BEHIND_DISPARITY_PX behind farthest there (the farthest
+    surface the photo shows at each pixel and the pixels around it, which a point splats
+    onto). Judged once: moved back, a point falls a little elsewhere, but in the measured
+    scenes (36 photos, a synthetic one of three depths) never before a farther surface."""
     if len(points) == 0:
         return points
-    # a point splats onto the 2 x 2 pixels around it: the farthest surface of any of them
-    farthest = cv2.dilate(farthest, np.ones((3, 3), np.uint8))
     height, width = farthest.shape
+    cols = np.clip(np.floor(points.x * photo_view.focal_px / points.z
+                            + photo_view.principal_x_px), 0, width - 1).astype(np.int64)
+    rows = np.clip(np.floor(points.y * photo_view.focal_px / points.z
+                            + photo_view.principal_y_px), 0, height - 1).astype(np.int64)
+    surface = farthest[rows, cols]
+    limit = 1.0 / surface - FILL_BEHIND_DISPARITY_PX / disparity_scale
+    # where even the limit is no depth (a surface at the far end), half its disparity
+    limit = np.where(limit > 0, limit, 0.5 / surface)
+    z = np.where(1.0 / points.z > limit, 1.0 / limit, points.z).astype(np.float32)
+    # along the ray from view's centre, so the point still fills the pixel it was made for
     x0, y0, z0 = (np.float32(value) for value in view.position)
-    x, y, z = points.x, points.y, points.z
-    for _ in range(FILL_BEHIND_ROUNDS):
-        cols = np.clip(np.floor(x * photo_view.focal_px / z + photo_view.principal_x_px),
-                       0, width - 1).astype(np.int64)
-        rows = np.clip(np.floor(y * photo_view.focal_px / z + photo_view.principal_y_px),
-                       0, height - 1).astype(np.int64)
-        surface = farthest[rows, cols]
-        limit = 1.0 / surface - FILL_BEHIND_DISPARITY_PX / disparity_scale
-        # where even the limit is no depth (a surface at the far end), half its disparity
-        limit = np.where(limit > 0, limit, 0.5 / surface)
-        ahead = 1.0 / z > limit
-        if not ahead.any():
-            break
-        # along the ray from view's centre, so the point still fills the pixel it was made for
-        moved = np.where(ahead, 1.0 / limit, z).astype(np.float32)
-        stretch = (moved - z0) / (z - z0)
-        x, y, z = x0 + (x - x0) * stretch, y0 + (y - y0) * stretch, moved
-    return PointCloud(np.ascontiguousarray(x, dtype=np.float32),
-                      np.ascontiguousarray(y, dtype=np.float32),
+    stretch = (z - z0) / (points.z - z0)
+    return PointCloud(np.ascontiguousarray(x0 + (points.x - x0) * stretch, dtype=np.float32),
+                      np.ascontiguousarray(y0 + (points.y - y0) * stretch, dtype=np.float32),
                       np.ascontiguousarray(z, dtype=np.float32), points.colour, points.alpha)
 
 
@@ -809,6 +798,8 @@ def build_extended_cloud(
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
     cloud, farthest = layered_cloud(photo, depth, photo_view,
                                     source_window(scene, plan, cloud_scale), enlargement)
+    # a point splats onto the 2 x 2 pixels around it: a fill stays behind all of them
+    farthest = cv2.dilate(farthest, np.ones((3, 3), np.uint8))
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)
