@@ -135,6 +135,14 @@ BOX_CORE_FRACTION = 0.5
 width and height), and those mostly outside other objects' boxes: a neighbour's arm or
 shoulder inside the box is not this person, a leg cut off by a pole is."""
 
+BEYOND_BOX_MAX_SHARE = 0.5
+"""A detector's box can cut through its object, or through what the object holds: each piece
+ISNet holds salient beyond the box that touches the instance's mask, outside other objects'
+boxes, joins the mask when it is at most this share of the mask. A box edge cut an
+astronaut's helmet in two (the piece beyond it, 18 % of her mask, stayed on the ground as the
+card moved) and a cameraman's tripod; a larger piece is scenery ISNet took as one with the
+object (the lake beyond a rowing boat, twice the boat), left to the background."""
+
 HEAD_FRACTION = 0.2
 """The top of a person box, this share of its height, holds the head: the face region that
 no cleaning removes and no other card takes..."""
@@ -259,6 +267,22 @@ def _box_core(shape: tuple[int, int], box: tuple[float, float, float, float]) ->
     margin_x = (1 - BOX_CORE_FRACTION) / 2 * (x1 - x0)
     margin_y = (1 - BOX_CORE_FRACTION) / 2 * (y1 - y0)
     return _box_mask(shape, (x0 + margin_x, y0 + margin_y, x1 - margin_x, y1 - margin_y))
+
+
+def beyond_the_box(mask: np.ndarray, salient: np.ndarray,
+                   box: tuple[float, float, float, float], others: np.ndarray) -> np.ndarray:
+    """The salient pieces beyond box (and outside others) that touch mask, each at most
+    BEYOND_BOX_MAX_SHARE of it."""
+    beyond = salient & ~_box_mask(mask.shape, box) & ~others
+    if not beyond.any() or not mask.any():
+        return np.zeros_like(mask)
+    count, labels = cv2.connectedComponents(beyond.astype(np.uint8), connectivity=8)
+    touching = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    joined = np.zeros(count, bool)
+    joined[np.unique(labels[touching & beyond])] = True
+    joined &= np.bincount(labels.ravel(), minlength=count) <= BEYOND_BOX_MAX_SHARE * mask.sum()
+    joined[0] = False
+    return joined[labels]
 
 
 def head_region(box: tuple[float, float, float, float], shape: tuple[int, int]) -> np.ndarray:
@@ -627,8 +651,11 @@ def find_instances(image: np.ndarray,
         for other in objects:
             if other is not detection:
                 others |= _box_mask(shape, other.box)
-        return own_pieces(in_box & np.logical_or.reduce(parts),
+        mask = own_pieces(in_box & np.logical_or.reduce(parts),
                           _box_core(shape, detection.box), others)
+        if salient is not None:
+            mask |= beyond_the_box(mask, salient, detection.box, others)
+        return mask
 
     accessories = [d for d in detections if d.class_name in paper.ACCESSORY_CLASSES]
     masks = [shape_mask(d) for d in objects]
