@@ -401,3 +401,40 @@ def test_real_astronauts_helmet_is_not_cut_by_her_box(monkeypatch):
     assert helmet_beyond_box.mean() > 0.95, f"{helmet_beyond_box.mean():.2f} of it on the card"
     backdrop = person.mask[600:700, 900:]
     assert not backdrop.any(), "the backdrop beside her went onto the card"
+
+
+def test_an_arm_two_masks_share_goes_to_the_one_it_leaves_on_a_colour_edge():
+    """Where people overlap, each mask holds every person pixel in its box: a woman's arm
+    against her nearer neighbour's hair was in both, the nearer card took it, cut along its
+    box's edge where skin went on, and the move tore the arm in two. A shared piece goes to
+    the mask whose outline it then leaves on the stronger colour edge; a face stays put, and
+    a piece with no edge to tell by stays shared."""
+    from kbbatch.segment import untangle_overlaps
+
+    height, width = 200, 300
+    rng = np.random.default_rng(3)
+    photo = np.empty((height, width, 3))
+    photo[:] = (120.0, 120.0, 125.0)
+    photo[30:, 20:100] = (200.0, 160.0, 60.0)  # the nearer woman's hair and shoulder
+    photo[50:, 100:140] = (230.0, 190.0, 160.0)  # the other's arm, against that hair
+    photo[50:, 140:260] = (30.0, 30.0, 35.0)  # the other's dress
+    photo = np.clip(photo + rng.normal(0, 6, photo.shape), 0, 255)
+    photo = cv2.GaussianBlur(photo.astype(np.uint8), (0, 0), 1.0)
+    nearer = np.zeros((height, width), bool)
+    nearer[32:, 22:118] = True  # her box ends at x = 120, through the arm
+    other = np.zeros_like(nearer)
+    other[52:, 102:258] = True
+    arm_in_her_box = nearer & other
+    untangled_nearer, untangled_other = untangle_overlaps([nearer, other], [None, None], photo)
+    assert not (untangled_nearer & arm_in_her_box).any(), "the arm stayed on the nearer card"
+    assert (untangled_other == other).all()
+    assert (untangled_nearer == nearer & ~other).all()
+    # her face there is hers, whatever the edges say
+    face = np.zeros_like(nearer)
+    face[60:80, 105:115] = True
+    kept_nearer, _ = untangle_overlaps([nearer, other], [face, None], photo)
+    assert (kept_nearer == (nearer & ~other) | face).all()
+    # the same colour on both sides of the shared piece: no edge to tell by, both keep it
+    flat = np.full_like(photo, 128)
+    assert all((a == b).all() for a, b in zip(
+        untangle_overlaps([nearer, other], [None, None], flat), [nearer, other], strict=True))
