@@ -299,13 +299,16 @@ def untangle_overlaps(masks: list[np.ndarray], faces: list[np.ndarray | None],
     strong as its border with the woman's.
     """
     masks = [mask.copy() for mask in masks]
-    strength = cv2.dilate(_edge_strength(image), np.ones((5, 5), np.uint8))
+    strength = None
     ring = np.ones((3, 3), np.uint8)
     for first in range(len(masks)):
         for second in range(first + 1, len(masks)):
             shared = masks[first] & masks[second]
             if not shared.any():
                 continue
+            if strength is None:  # the masks are eroded: an outline's edge lies that far out
+                reach = np.ones((2 * MASK_ERODE_PX + 1,) * 2, np.uint8)
+                strength = cv2.dilate(_edge_strength(image), reach)
             count, labels = cv2.connectedComponents(shared.astype(np.uint8), connectivity=8)
             own_first = cv2.dilate((masks[first] & ~masks[second]).astype(np.uint8), ring) > 0
             own_second = cv2.dilate((masks[second] & ~masks[first]).astype(np.uint8), ring) > 0
