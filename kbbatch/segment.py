@@ -476,13 +476,8 @@ def _onto_stronger_edges(pieces: np.ndarray, beyond: np.ndarray, strength: np.nd
     grown = cv2.dilate(labels.astype(np.float32), ring).astype(np.int64)  # a neighbour's label
     new_border = beyond & (grown > 0)
     old_border = pieces & (cv2.dilate((~pieces & ~beyond).astype(np.uint8), ring) > 0)
-
-    def mean_strength(border: np.ndarray, owner: np.ndarray) -> np.ndarray:
-        total = np.bincount(owner[border], strength[border], minlength=count)
-        number = np.bincount(owner[border], minlength=count)
-        return total / np.maximum(number, 1)
-
-    stronger = mean_strength(new_border, grown) >= EDGE_GAIN * mean_strength(old_border, labels)
+    stronger = (_mean_per_piece(strength, grown, count, new_border)
+                >= EDGE_GAIN * _mean_per_piece(strength, labels, count, old_border))
     stronger[0] = False
     return stronger[labels]
 
@@ -741,9 +736,10 @@ def find_instances(image: np.ndarray,
         if face is not None:  # the face is never shaved: it stays whole on its card
             mask |= face
         kept.append((detection, mask, face))
-    kept = [(detection, mask, face) for (detection, _, face), mask in zip(
-        kept, untangle_overlaps([m for _, m, _ in kept], [f for _, _, f in kept], image),
-        strict=True)]
+    untangled = untangle_overlaps([mask for _, mask, _ in kept], [face for _, _, face in kept],
+                                  image)
+    kept = [(detection, mask, face)
+            for (detection, _, face), mask in zip(kept, untangled, strict=True)]
     instances = []
     for detection, mask, face in kept:
         for _, _, other_face in kept:  # nor taken by another card
