@@ -28,6 +28,7 @@ from kbbatch.images import (
     scan_folder,
     upright_size,
 )
+from kbbatch.interrupts import interrupted
 from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
 from kbbatch.models import providers_used
 from kbbatch.outputs import (
@@ -676,6 +677,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
             results.append(PlanResult(str(source), "failed", error=str(error)))
         except Exception as error:  # one photo must never stop the batch
+            if interrupted(error):  # but a Ctrl-C does, whatever a library made of it
+                raise KeyboardInterrupt from error
             message = f"{source}: {type(error).__name__}: {error}"
             results.append(PlanResult(str(source), "failed", error=message))
     write_manifest(manifest_path, _merged_plans(manifest_path, folder, planned_entries, replan))

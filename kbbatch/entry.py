@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import sys
 
+from kbbatch.interrupts import interrupted
+
 EXIT_INTERRUPTED = 130
 """Exit status of a run stopped by Ctrl-C or SIGTERM before it was through."""
 
@@ -14,7 +16,11 @@ EXIT_INTERRUPTED = 130
 def main() -> None:
     try:
         status = _run()
-    except KeyboardInterrupt:
+    except SystemExit:  # said and settled (an interrupt the command caught included)
+        raise
+    except BaseException as error:
+        if not interrupted(error):
+            raise
         print("\ninterrupted: nothing partial is left; run again to finish", file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(status if isinstance(status, int) else 0)

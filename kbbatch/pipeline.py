@@ -51,6 +51,7 @@ from kbbatch.images import (
     read_image,
 )
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
+from kbbatch.interrupts import interrupted
 from kbbatch.manifest import ManifestEntry, ManifestError
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, load_preset, with_overrides
@@ -718,6 +719,8 @@ def make_clip(
         result.status = "interrupted"
         result.error = str(error)
     except Exception as error:  # one photo must never stop the batch
+        if interrupted(error):  # but a Ctrl-C does, whatever a library made of it
+            raise KeyboardInterrupt from error
         if is_disk_full(error):
             full = Path(error.filename) if error.filename else output.parent
             full = full if full.is_dir() else full.parent

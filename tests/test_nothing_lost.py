@@ -661,6 +661,40 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
     assert "1 photo(s) not started: run again to finish" in status.stdout, status.stdout
 
 
+def _interrupt_a_library_turned_into_an_import_error():
+    """What onnxruntime does with a Ctrl-C that lands while its compiled module loads."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as error:
+        raise ImportError("initialization failed") from error
+
+
+def test_a_ctrl_c_a_library_turned_into_another_error_still_stops_the_run(
+        tmp_path, monkeypatch, capsys, quick_preset):
+    """CI caught it once: Ctrl-C 0.6 s into `render` landed while onnxruntime loaded, which
+    raised "ImportError: initialization failed" from the KeyboardInterrupt: a traceback and
+    status 1. In a photo's make, the batch would have failed the photo and gone on."""
+    from kbbatch import entry, pipeline
+
+    monkeypatch.setattr(entry, "_run", _interrupt_a_library_turned_into_an_import_error)
+    with pytest.raises(SystemExit) as stopped:
+        entry.main()
+    assert stopped.value.code == entry.EXIT_INTERRUPTED
+    assert "interrupted" in capsys.readouterr().err
+    source = photo(tmp_path / "in" / "a.jpg", seed=1)
+    options = ClipOptions(depth=DepthOptions(backend="popup"), cache_depth=False)
+    monkeypatch.setattr(pipeline, "prepare_scene",
+                        lambda *args, **kwargs: _interrupt_a_library_turned_into_an_import_error())
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.make_clip(source, tmp_path / "a.mp4", quick_preset, options, False)
+    # any other error still fails that photo alone
+    monkeypatch.setattr(pipeline, "prepare_scene",
+                        lambda *args, **kwargs: (_ for _ in ()).throw(ImportError("no such")))
+    result = pipeline.make_clip(source, tmp_path / "a.mp4", quick_preset, options, False)
+    assert result.status == "failed" and "no such" in result.error
+    assert not (tmp_path / "a.mp4").exists()
+
+
 @pytest.mark.parametrize("command", ["render", "plan"])
 def test_ctrl_c_while_it_starts_up_ends_with_130_and_no_traceback(tmp_path, command):
     """Ctrl-C while the modules loaded gave a traceback; while a command set up (or, in
