@@ -299,7 +299,7 @@ def untangle_overlaps(masks: list[np.ndarray], faces: list[np.ndarray | None],
     hold the one in front, each up to its own box's edge. On a card game, a woman's arm
     stood against her nearer neighbour's hair: both masks held it, the nearer card took it
     and cut it along that card's box edge (no colour edge: skin went on), and the move tore
-    the arm in two. Its border with the neighbour's own pixels lay on an edge 1.9 times as
+    the arm in two. Its border with the neighbour's own pixels lay on an edge 2.5 times as
     strong as its border with the woman's.
     """
     masks = [mask.copy() for mask in masks]
