@@ -510,8 +510,9 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         previous = journal.job_of(source, content)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
-        if not force and journal.is_up_to_date(source, fingerprint, settings, output) and not (
-                options.save_depth and depth_images_missing(output)):
+        up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
+        if not force and up_to_date and not (options.save_depth
+                                             and depth_images_missing(output)):
             return ClipResult(str(source), str(output), "skipped", 0.0)
         journal.start(source, fingerprint, settings[0], name, content)
     except JournalError as error:

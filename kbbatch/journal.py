@@ -307,17 +307,26 @@ class Journal:
         return {state: 0 for state in STATES} | dict(rows.fetchall())
 
     def is_up_to_date(self, source: Path, fingerprint: str, settings: tuple[str, ...],
-                      output: Path) -> bool:
-        """Done with this photo and one of these settings' digests, and the clip is the very
-        file then written (a truncated or replaced clip has another size or time)."""
-        job = self.get(source)
-        if job is None or job.state != "done" or job.output != output.name:
-            return False
+                      output: Path, content: str) -> bool:
+        """Done with this photo's bytes and one of these settings' digests, and the clip is
+        the very file then written (a truncated or replaced clip has another size or time).
+
+        The bytes are told by their sha256 (by size and time for a job of a version that kept
+        no sha256): a folder copied without its times, or a photo dropped in the daemon's
+        inbox again once its clip was made (the job is then another path's, in done/), has
+        nothing new to make; a photo edited with its time kept (exiftool -P) has."""
         try:
             clip = source_fingerprint(output)
         except OSError:
             return False
-        return job.fingerprint == fingerprint and job.settings in settings and job.clip == clip
+        own = self.get(source)
+        jobs = ([own] if own is not None else []) + self._select("WHERE content = ?", (content,))
+        return any(
+            job.state == "done" and job.output == output.name and job.settings in settings
+            and job.clip == clip
+            and (job.content == content if job.content is not None
+                 else job is own and job.fingerprint == fingerprint)
+            for job in jobs)
 
     def clip_name(self, source: Path, content: str, preferred: str, folder: Path,
                   with_depth_images: bool = False) -> str:

@@ -470,7 +470,7 @@ class JobRunner:
             if previous is not None and previous.output == name:
                 preferred = name  # its own name, kept: nothing to note
             output = s.outbox / name
-            if self.journal.is_up_to_date(path, fingerprint, settings, output) and not (
+            if self.journal.is_up_to_date(path, fingerprint, settings, output, content) and not (
                     options.save_depth and depth_images_missing(output)):
                 inbox.forget(path)
                 log.info("%s: clip already complete, moving the photo", path.name)

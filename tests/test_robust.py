@@ -63,6 +63,33 @@ def test_rerun_skips_up_to_date_clips_and_force_redoes_them(tmp_path, quick_pres
     assert [r.status for r in forced.results] == ["done", "done"]
 
 
+def test_photos_with_new_times_but_the_same_bytes_are_not_made_again(tmp_path, quick_preset):
+    """A folder copied to another disk without its times (cp -r, a sync tool, a zip) has new
+    modification times and the same bytes: every clip was made again, for nothing. Other
+    bytes under the same size and time (an edit that kept the photo's time) are made again."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "b.jpg")
+    first = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in first.results] == ["done", "done"]
+    clip = (tmp_path / "out" / "a.mp4").stat().st_mtime_ns
+    later = (folder / "a.jpg").stat().st_mtime_ns + 5_000_000_000
+    for photo in folder.iterdir():  # the same bytes, written again five seconds later
+        photo.write_bytes(photo.read_bytes())
+        os.utime(photo, ns=(later, later))
+    again = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in again.results] == ["skipped", "skipped"]
+    assert (tmp_path / "out" / "a.mp4").stat().st_mtime_ns == clip
+    photo = folder / "b.jpg"
+    data = bytearray(photo.read_bytes())
+    data[-3] ^= 0xFF  # b edited in place: the same size, its time put back
+    photo.write_bytes(bytes(data))
+    os.utime(photo, ns=(later, later))
+    edited = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in edited.results] == ["skipped", "done"]
+
+
 def test_fail_fast_stops_at_the_first_failure(tmp_path, quick_preset):
     folder = tmp_path / "in"
     folder.mkdir()

@@ -742,3 +742,30 @@ def test_the_daemon_says_a_clip_is_replaced_only_once_it_is(tmp_path):
         assert stop(daemon) == 0
     assert (outbox / "a.mp4").stat().st_mtime_ns == made
     assert "changed since a.mp4 was made" not in daemon_log(tmp_path)
+
+
+def test_the_same_photo_dropped_again_is_not_made_again(tmp_path):
+    """A photo dropped in the inbox a second time (copied again from the card, or put back from
+    done/) was made again and its clip rewritten: its clip is complete, so the daemon says so
+    and files the photo in done/ beside the first copy; another photo under its name is still
+    made, under a name of its own."""
+    inbox, outbox, preset = folders(tmp_path)
+    first = photo_bytes(tmp_path, 1)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        drop(inbox, "IMG_0001.jpg", first)
+        wait_for(lambda: finished_jobs(outbox) == 1 and (inbox / "done" / "IMG_0001.jpg").exists(),
+                 240, "the first IMG_0001.jpg")
+        made = (outbox / "IMG_0001.mp4").stat().st_mtime_ns
+        drop(inbox, "IMG_0001.jpg", first)  # the same bytes again, a new file
+        wait_for(lambda: len(list((inbox / "done").iterdir())) == 2, 240,
+                 "the second copy in done/")
+        drop(inbox, "IMG_0001.jpg", photo_bytes(tmp_path, 2))  # another photo of the name
+        wait_for(lambda: len(clips_in(outbox)) == 2, 240, "the other photo's clip")
+    finally:
+        assert stop(daemon) == 0
+    assert (outbox / "IMG_0001.mp4").stat().st_mtime_ns == made, "the clip was made again"
+    assert daemon_log(tmp_path).count("start IMG_0001.jpg") == 2
+    assert "IMG_0001.jpg: clip already complete" in daemon_log(tmp_path)
+    assert sorted(p.read_bytes() for p in (inbox / "done").iterdir()) == sorted(
+        [first, first, photo_bytes(tmp_path, 2)])
