@@ -53,11 +53,11 @@ from kbbatch.pipeline import (
     clip_fingerprints,
     depth_images_missing,
     joined_notes,
+    plan_photo,
     progress_bar,
     remove_stale_scratch,
     working_depth,
 )
-from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset
 
 CORES_PER_JOB = 4
@@ -661,9 +661,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             photo_preset, photo_options = apply_entry(entry, preset, options)
             photo = read_image(source)
             check_photo_size(photo.shape[1], photo.shape[0], photo_preset, source)
-            working, _, depth = working_depth(photo, source, photo_options)
-            plan = get_planner(photo_options.planner).plan(PlanRequest(working, depth,
-                                                                       photo_preset))
+            working, depth_result, depth = working_depth(photo, source, photo_options)
+            plan = plan_photo(working, depth_result, depth, photo_preset, photo_options.planner)
             planned = plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1],
                                     file_sha256(source))
             planned_entries[source.name] = planned

@@ -39,7 +39,7 @@ from kbbatch.camera import (
     output_view,
 )
 from kbbatch.camera import working_size as compute_working_size
-from kbbatch.depth import DepthError, DepthOptions, DepthResult, estimate_disparity
+from kbbatch.depth import DepthError, DepthOptions, DepthResult, SceneContext, estimate_disparity
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DeviceError, frames_device
 from kbbatch.encode import EncoderStoppedError, encode_frames, palindrome_order
@@ -243,7 +243,7 @@ def prepare_scene(
 
     clock = time.perf_counter()
     if plan is None:
-        plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
+        plan = plan_photo(working, depth_result, depth, preset, options.planner)
     if _is_still(plan):
         log.warning("%s: the start and end crops are the same, so the clip is a still picture "
                     "(give the preset a zoom above 1, or the manifest two different crops)",
@@ -272,6 +272,15 @@ def prepare_scene(
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
                          depth_result.disparity, risk, cloud_width / width)
+
+
+def plan_photo(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray,
+               preset: Preset, planner: str) -> Plan:
+    """The named planner's plan; ISNet's map, if the planner asks for it, is the one the depth
+    stage worked out (after a depth cache hit, it is worked out now: the same map)."""
+    context = depth_result.segmentation or SceneContext(working)
+    return get_planner(planner).plan(PlanRequest(working, depth, preset,
+                                                 lambda: context.saliency))
 
 
 def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions

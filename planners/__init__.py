@@ -7,6 +7,7 @@ entry with crops may name `2d` only: its crops, rendered without parallax).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -16,6 +17,10 @@ from kbbatch.camera import Plan
 from kbbatch.presets import Preset
 
 
+def no_saliency() -> np.ndarray | None:
+    return None
+
+
 @dataclass(frozen=True)
 class PlanRequest:
     """Everything a planner may look at, at the working size (long side 1024)."""
@@ -23,6 +28,10 @@ class PlanRequest:
     image: np.ndarray  # (H, W, 3) uint8 RGB
     depth: np.ndarray  # (H, W) float32, working units (nearest surface at f)
     preset: Preset
+    saliency: Callable[[], np.ndarray | None] = no_saliency
+    """ISNet's salient-object probability (H, W), or None without the model: worked out on
+    the first call (the depth stage's own when it ran), so a planner that does not ask for
+    it pays nothing."""
 
 
 class Planner(Protocol):

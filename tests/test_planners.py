@@ -43,6 +43,78 @@ def test_crops_lie_inside_and_keep_the_output_aspect(size, preset_name, planner)
     assert ratio == pytest.approx(request.preset.zoom)
 
 
+def subject_request(preset_name: str, subject: np.ndarray, asked: list | None = None
+                    ) -> PlanRequest:
+    """A flat 1024 x 576 scene whose salient map is subject (a probability map)."""
+    request = request_for(1024, 576, preset_name, disparity=np.full((576, 1024), 8.0,
+                                                                   np.float32))
+
+    def saliency() -> np.ndarray:
+        if asked is not None:
+            asked.append(True)
+        return subject
+
+    return PlanRequest(request.image, request.depth, request.preset, saliency)
+
+
+def test_a_vertical_clip_of_a_wide_photo_frames_its_salient_subject():
+    """Centred, a vertical clip of a landscape photo showed a lantern's left edge beside a black
+    wall (photo 20), a rooster's comb without its eye, a sign's words cut ("COME TO LORFUL");
+    with no person, animal or vehicle detected, the crop now goes where ISNet's subject is."""
+    lantern = np.zeros((576, 1024), np.float32)
+    lantern[120:330, 120:260] = 0.9
+    plan = get_planner("auto").plan(subject_request("social", lantern))
+    for crop in (plan.start, plan.end):
+        assert crop.left_px <= 120 and crop.right_px >= 260, crop
+    # Without the subject weighed (--planner auto without saliency), centred as before.
+    from kbbatch.planners.auto import AutoPlanner
+
+    plain = AutoPlanner(use_saliency=False).plan(subject_request("social", lantern))
+    assert plain.start.center_x_px == pytest.approx(512)
+
+
+def test_a_subject_no_crop_can_hold_or_none_at_all_leaves_the_crop_centred():
+    pots = np.zeros((576, 1024), np.float32)  # three pots in a row: no crop frames them whole
+    for left in (200, 450, 700):
+        pots[250:450, left:left + 150] = 0.9
+    speck = np.zeros((576, 1024), np.float32)
+    speck[10:20, 10:20] = 0.9  # under SUBJECT_MIN_FRACTION of the photo
+    for subject in (pots, speck, np.zeros((576, 1024), np.float32)):
+        plan = get_planner("auto").plan(subject_request("social", subject))
+        assert plan.start.center_x_px == pytest.approx(512)
+
+
+def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
+    """A 16:9 clip of a 16:9 photo (or a 3:2 one): placed as before, and ISNet is not run for
+    it after a depth cache hit."""
+    asked: list = []
+    off_centre = np.zeros((576, 1024), np.float32)
+    off_centre[100:300, 20:200] = 0.9
+    get_planner("auto").plan(subject_request("slideshow", off_centre, asked))
+    assert not asked
+
+
+def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
+    from kbbatch.images import read_image
+    from kbbatch.pipeline import plan_photo, working_depth
+
+    from .test_crowds import real_models_or_skip
+
+    real_models_or_skip(monkeypatch)
+    [path] = [p for p in shared_photos(1)[0].parent.glob("20_*lantern*")] or [None]
+    if path is None:
+        pytest.skip("photo 20 (the lantern) not found in ../shared/photos")
+    options = ClipOptions(cache_depth=False)
+    photo = read_image(path)
+    working, depth_result, depth = working_depth(photo, path, options)
+    plan = plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    salient = depth_result.segmentation.saliency >= 0.5
+    ys, xs = np.nonzero(salient)
+    for crop in (plan.start, plan.end):
+        inside = salient[:, int(crop.left_px):int(crop.right_px) + 1].sum() / salient.sum()
+        assert inside > 0.95, f"{inside:.2f} of the lantern in the {crop}"
+
+
 def test_zoom_out_swaps_the_ends():
     plan = get_planner("auto").plan(request_for(1024, 683, "slideshow", zoom_direction="out"))
     assert plan.start.width_px < plan.end.width_px
@@ -500,7 +572,7 @@ def test_plan_keeps_an_edit_saved_while_it_plans_and_skips_the_maps_it_names(
     so the render then failed on an entry for a photo that is no photo."""
     from click.testing import CliRunner
 
-    from kbbatch import batch
+    from kbbatch import pipeline
     from kbbatch.cli import main
 
     folder = tmp_path / "photos"
@@ -511,7 +583,7 @@ def test_plan_keeps_an_edit_saved_while_it_plans_and_skips_the_maps_it_names(
     manifest_path = tmp_path / "m.json"
     manifest_path.write_text(json.dumps({"version": 1, "images": {
         "a.jpg": {"depth": "photos/a_map.png"}}}))
-    real_get_planner = batch.get_planner
+    real_get_planner = pipeline.get_planner
 
     def planner_while_the_user_saves(name):  # the user's save lands during the planning
         document = json.loads(manifest_path.read_text())
@@ -519,7 +591,7 @@ def test_plan_keeps_an_edit_saved_while_it_plans_and_skips_the_maps_it_names(
         manifest_path.write_text(json.dumps(document))
         return real_get_planner(name)
 
-    monkeypatch.setattr(batch, "get_planner", planner_while_the_user_saves)
+    monkeypatch.setattr(pipeline, "get_planner", planner_while_the_user_saves)
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(main, ["plan", "photos", "-o", "m.json", "--planner", "center",
                                        "--preset", "preview"])

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
@@ -30,6 +30,9 @@ class DepthResult:
     disparity: np.ndarray  # (H, W) float32, larger is nearer
     backend: str
     source: str  # what it came from: a file path, a model, a description
+    segmentation: SceneContext | None = field(default=None, compare=False, repr=False)
+    """What the stage worked out of the photo's objects, for the planner to reuse (not kept
+    in the depth cache)."""
 
 
 @dataclass(frozen=True)
@@ -156,4 +159,4 @@ def estimate_disparity(image: np.ndarray, photo_path: Path | None,
         if instances:
             disparity = adjust(disparity, instances)
     log.info("depth from %s (%s)", result.backend, result.source)
-    return DepthResult(disparity, result.backend, result.source)
+    return DepthResult(disparity, result.backend, result.source, context)

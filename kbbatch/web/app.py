@@ -56,10 +56,10 @@ from kbbatch.pipeline import (
     check_photo_size,
     cloud_scale,
     make_clip,
+    plan_photo,
     resize_to,
     working_depth,
 )
-from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.presets import Preset, PresetError, builtin_names, load_preset, with_overrides
 from kbbatch.review import depth_picture
 
@@ -328,8 +328,8 @@ class ReviewSession:
     def _compute_plan(source: Path, preset: Preset, options: ClipOptions) -> dict[str, Any]:
         photo = read_image(source)
         check_photo_size(photo.shape[1], photo.shape[0], preset, source)  # as plan and render
-        working, _, depth = working_depth(photo, source, options)
-        plan = get_planner(options.planner).plan(PlanRequest(working, depth, preset))
+        working, depth_result, depth = working_depth(photo, source, options)
+        plan = plan_photo(working, depth_result, depth, preset, options.planner)
         return {"entry": plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1]),
                 "width_px": photo.shape[1], "height_px": photo.shape[0]}
 
