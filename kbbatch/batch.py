@@ -520,13 +520,19 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
     kept = previous is not None and previous.output == name  # its own name: nothing to note
     return ClipJob(source, output, entry, "" if kept else preferred,
-                   replaces_other_bytes=replaces)
+                   replaces_other_bytes=replaces, content=content)
 
 
 def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
     """Record a made clip in the journal; a journal that cannot be written fails the photo."""
     from kbbatch.journal import JournalError, source_fingerprint
 
+    if result.status == "done" and job.content and result.content not in (None, job.content):
+        # saved again between the job's start and the photo's read: the clip is of bytes the
+        # journal would not know it by (and took for up to date once they came back)
+        result.status = "failed"
+        result.error = (f"{job.source}: changed while its clip was made (saved again during "
+                        "the run?); run again to make it from the photo as it is then")
     named = clip_name_note(job.source, job.preferred, job.output.name) if job.preferred else None
     replaced = (replaced_clip_note(job.source, job.output.name)
                 if job.replaces_other_bytes and result.status == "done" else None)
@@ -643,6 +649,11 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     existing = existing_manifest(manifest_path)
     check_writable(manifest_path.parent)  # before the planning, not after it
     preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
+    if preview_dir.resolve() == folder.resolve():  # the next render took the sheet for a photo
+        raise OutputFolderError(
+            f"{preview_dir}: the previews of {manifest_path.name} go into this folder, and it "
+            "is the photo folder (the contact sheet would be made into a clip); give the "
+            "manifest another name")
     results: list[PlanResult] = []
     planned_entries: dict[str, dict] = {}
     previews = []

@@ -250,13 +250,43 @@ def read_image(path: Path) -> np.ndarray:
 
     What the decoders warn of (Pillow: "Corrupt EXIF data") is logged with the file's name:
     printed as Python warnings, they named no photo, twice per file in a plan and render."""
+    return read_photo(path, hashed=False)[0]
+
+
+def read_photo(path: Path, hashed: bool = True) -> tuple[np.ndarray, str]:
+    """read_image's array and the sha256 of the very bytes decoded ("" unless hashed).
+
+    The file is read once: hashed by one read and decoded from another, a photo saved again
+    between them had its clip journaled as made from bytes it was not made from, and once the
+    file held those bytes again, every run took the wrong clip for up to date."""
+    path = Path(path)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            return _read_image(Path(path))
+            data = _photo_bytes(path)
+            return _read_image(path, data), hashlib.sha256(data).hexdigest() if hashed else ""
         finally:
             for warning in dict.fromkeys(str(w.message) for w in caught):
                 log.warning("%s: %s", path, warning)
+
+
+MAX_PHOTO_BYTES = 2 << 30
+"""Larger files are refused before they are read into memory (no photo under MAX_SOURCE_PIXELS
+needs more: 120 MP of 16-bit RGB is 720 MB)."""
+
+
+def _photo_bytes(path: Path) -> bytes:
+    try:
+        size = path.stat().st_size
+        if size > MAX_PHOTO_BYTES:
+            raise ImageReadError(path, f"is {size / 2**30:.1f} GiB, more than the "
+                                 f"{MAX_PHOTO_BYTES / 2**30:.0f} GiB this tool reads")
+        data = path.read_bytes()
+    except OSError as error:
+        raise ImageReadError(path, unreadable_reason(error)) from error
+    if not data:
+        raise ImageReadError(path, "is empty (0 bytes)")
+    return data
 
 
 EXIF_ORIENTATION = 0x0112
@@ -280,15 +310,10 @@ def upright_size(path: Path) -> tuple[int, int]:
     return width, height
 
 
-def _read_image(path: Path) -> np.ndarray:
+def _read_image(path: Path, data: bytes) -> np.ndarray:
+    """The picture in data, the bytes of the file at path (named in errors)."""
     try:
-        size = path.stat().st_size
-    except OSError as error:
-        raise ImageReadError(path, unreadable_reason(error)) from error
-    if size == 0:
-        raise ImageReadError(path, "is empty (0 bytes)")
-    try:
-        with Image.open(path) as image:
+        with Image.open(io.BytesIO(data)) as image:
             width, height = image.size
             if width * height > MAX_SOURCE_PIXELS:
                 if image.format != "JPEG":
@@ -315,7 +340,8 @@ def _read_image(path: Path) -> np.ndarray:
     except PermissionError as error:
         raise ImageReadError(path, unreadable_reason(error)) from error
     except UnidentifiedImageError as error:
-        picture = _read_with_opencv(path) if path.suffix.lower() in (".tif", ".tiff") else None
+        picture = (_read_with_opencv(path, data) if path.suffix.lower() in (".tif", ".tiff")
+                   else None)
         if picture is None:
             raise ImageReadError(path, "is not an image this tool can read") from error
         return picture
@@ -370,14 +396,14 @@ def _to_8bit(values: np.ndarray, is_float: bool, is_16bit: bool) -> np.ndarray:
     return np.clip(values / peak * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
-def _read_with_opencv(path: Path) -> np.ndarray | None:
+def _read_with_opencv(path: Path, data: bytes) -> np.ndarray | None:
     """A TIFF Pillow cannot open (32-bit float RGB, as HDR merges save) read by OpenCV, or
     None. Its orientation tag is not applied."""
     quiet = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # libtiff's own lines
     try:
-        picture = read_image_bytes(path)
-    except (OSError, cv2.error):
+        picture = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
         return None
     finally:
         cv2.utils.logging.setLogLevel(quiet)

@@ -48,7 +48,7 @@ from kbbatch.images import (
     atomic_output,
     disk_full_message,
     is_disk_full,
-    read_image,
+    read_photo,
 )
 from kbbatch.inpaint import build_extended_cloud, colour_inpainter
 from kbbatch.interrupts import interrupted
@@ -127,6 +127,7 @@ class ClipResult:
     device: str | None = None  # where the frames were rendered
     full_folder: str | None = None  # "no_space": the folder whose disk had no room
     preset: str | None = None  # what it was made with: a manifest entry's own, or the run's
+    content: str | None = None  # sha256 of the photo's bytes it was made from
 
 
 @dataclass(frozen=True)
@@ -232,12 +233,14 @@ def prepare_scene(
     options: ClipOptions,
     timings: dict[str, float],
     plan: Plan | None = None,
+    content: str | None = None,
 ) -> PreparedScene:
-    """Depth, plan and the extended point cloud for one photo."""
+    """Depth, plan and the extended point cloud for one photo (content: the sha256 of the
+    bytes it was read from, when the caller has it)."""
     if plan is None:  # a manifest's crops are the user's: bound by the cloud size alone
         check_photo_size(photo.shape[1], photo.shape[0], preset, photo_path)
     clock = time.perf_counter()
-    working, depth_result, depth = working_depth(photo, photo_path, options)
+    working, depth_result, depth = working_depth(photo, photo_path, options, content)
     height, width = working.shape[:2]
     timings["depth"] = time.perf_counter() - clock
 
@@ -283,24 +286,25 @@ def plan_photo(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray
                                                  lambda: context.saliency))
 
 
-def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions
-                  ) -> tuple[np.ndarray, DepthResult, np.ndarray]:
+def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions,
+                  content: str | None = None) -> tuple[np.ndarray, DepthResult, np.ndarray]:
     """The photo at the working size, its depth result, and depth in working units."""
     width, height = compute_working_size(photo.shape[1], photo.shape[0])
     working = resize_to(photo, width, height)
-    depth_result = cached_disparity(working, photo_path, options)
+    depth_result = cached_disparity(working, photo_path, options, content)
     depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
     return working, depth_result, depth
 
 
-def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions
-                     ) -> DepthResult:
-    """The depth stage, through the on-disk cache when the photo is a file."""
+def cached_disparity(working: np.ndarray, photo_path: Path | None, options: ClipOptions,
+                     content: str | None = None) -> DepthResult:
+    """The depth stage, through the on-disk cache when the photo is a file (keyed by content,
+    the sha256 of the bytes working was read from; the file's, hashed now, without it)."""
     from kbbatch.fingerprint import depth_inputs, file_sha256
 
     if photo_path is None or not options.cache_depth:
         return estimate_disparity(working, photo_path, options.depth)
-    key = depth_inputs(photo_path, file_sha256(photo_path), options.depth).digest(
+    key = depth_inputs(photo_path, content or file_sha256(photo_path), options.depth).digest(
         working.shape[:2])
     cached = depth_cache.load(key)
     if cached is not None and cached.disparity.shape == working.shape[:2]:
@@ -683,7 +687,7 @@ def make_clip(
         preset, options = apply_entry(entry, preset, options)
         result.preset = preset.name
         clock = time.perf_counter()
-        photo = read_image(source)
+        photo, result.content = read_photo(source)
         timings["read"] = time.perf_counter() - clock
         plan = None
         if entry is not None and entry.has_crops:
@@ -691,7 +695,8 @@ def make_clip(
             plan = entry.plan(photo.shape[1], photo.shape[0], working_width, preset.aspect,
                               preset.easing)
             result.note = entry.planned_for_another(source)
-        prepared = prepare_scene(photo, source, preset, options, timings, plan)
+        prepared = prepare_scene(photo, source, preset, options, timings, plan,
+                                 result.content)
         result.depth_backend = prepared.depth_backend
         result.risk = prepared.risk.summary() if prepared.risk else None
         result.plan = plan_summary(prepared.plan, photo.shape[1] / prepared.scene.width_px)
@@ -707,9 +712,7 @@ def make_clip(
         # The depth images after the clip: written first, a run killed mid-encode left the new
         # photo's maps beside no clip (or beside the old photo's clip).
         if options.save_depth:
-            from kbbatch.fingerprint import file_sha256
-
-            users = save_depth_images(output, prepared.disparity, file_sha256(source))
+            users = save_depth_images(output, prepared.disparity, result.content)
             if users:
                 result.note = joined_notes(result.note, users_files_note(users))
         else:
@@ -778,6 +781,7 @@ class ClipJob:
     entry: ManifestEntry | None = None
     preferred: str = ""  # the name the naming rule wanted (output differs where it was taken)
     replaces_other_bytes: bool = False  # output holds a clip of this photo's earlier bytes
+    content: str = ""  # sha256 of the photo's bytes when the job was started
 
 
 class ClipExecutor(Protocol):

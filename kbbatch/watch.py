@@ -227,6 +227,7 @@ class InFlight:
     preferred: str
     renamed: bool
     replaces: bool = False  # its clip replaces one made from the photo's earlier bytes
+    content: str = ""  # sha256 of its bytes when taken
 
 
 @dataclass(frozen=True)
@@ -491,7 +492,7 @@ class JobRunner:
                 self.requeue(path, True)
                 return
             self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed,
-                                              replaces)
+                                              replaces, content)
 
     def preferred_name(self, source: Path) -> str:
         """The batch's rule (outputs.output_names) over the photos in the inbox now."""
@@ -517,7 +518,7 @@ class JobRunner:
             # the deleted photo's, and the new one is a photo of its own, not an edit of it.
             replaced = (result.status == "done" and job.path in removed
                         and job.path.exists())
-            if self.changed_since_taken(job) and not replaced:
+            if self.changed_since_taken(job, result) and not replaced:
                 self.journal.finish(job.path, "queued", result.seconds,
                                     "changed while being processed")
                 del self.in_flight[future]
@@ -654,11 +655,20 @@ class JobRunner:
                         "" if alone else " alone")
             self.requeue(job.path, True)
 
-    def changed_since_taken(self, job: InFlight) -> bool:
+    def changed_since_taken(self, job: InFlight, result: ClipResult) -> bool:
+        """Its size or time changed, or its bytes: the clip was made from others than it was
+        taken with, or it holds others now (saved over with its size and time kept, as
+        exiftool -P does: it went to done/ with the clip of the photo it replaced)."""
+        if result.content and job.content and result.content != job.content:
+            return True
         try:
-            return source_fingerprint(job.path) != job.fingerprint
+            if source_fingerprint(job.path) != job.fingerprint:
+                return True
+            return bool(job.content) and file_sha256(job.path) != job.content
         except FileNotFoundError:
             return False
+        except OSError:  # unreadable now: taken again, to fail by name if it stays so
+            return True
 
     def recently_written(self, path: Path) -> bool:
         try:

@@ -778,3 +778,18 @@ def test_excluding_a_photo_made_earlier_says_its_clip_is_kept(tmp_path, quick_pr
     assert result.status == "excluded"
     assert result.note and "a.mp4, made earlier, is kept" in result.note
     assert (tmp_path / "out" / "a.mp4").is_file()
+
+
+def test_plan_refuses_previews_that_would_go_into_the_photo_folder(tmp_path, quick_preset):
+    """`plan holiday-previews -o holiday.json`: the previews folder of holiday.json is the
+    photo folder, so the contact sheet landed among the photos and the next render made a
+    clip of it."""
+    folder = tmp_path / "holiday-previews"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    options = ClipOptions(planner="center")
+    with pytest.raises(OutputFolderError, match=r"holiday-previews: .* is the photo folder"):
+        plan_folder(folder, tmp_path / "holiday.json", quick_preset, options,
+                    show_progress=False)
+    assert sorted(p.name for p in folder.iterdir()) == ["a.jpg"]
+    assert not (tmp_path / "holiday.json").exists()

@@ -90,6 +90,47 @@ def test_photos_with_new_times_but_the_same_bytes_are_not_made_again(tmp_path, q
     assert [r.status for r in edited.results] == ["skipped", "done"]
 
 
+def test_a_photo_saved_again_while_its_clip_is_made_is_not_taken_for_up_to_date(
+        tmp_path, quick_preset, monkeypatch):
+    """The batch hashed a photo when it started its job and decoded it later: saved again in
+    between, the clip was made from the new bytes and journaled under the old ones, and once
+    the file held the old bytes again (an undo, a sync conflict), every run took the wrong
+    clip for up to date. Now the photo is read once, hashed and decoded from the same bytes:
+    that clip is said to be of a changed photo, and the next run makes it again."""
+    from kbbatch import pipeline
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    first, second = tmp_path / "first.jpg", tmp_path / "second.jpg"
+    Image.fromarray(textured_image(180, 320, seed=1)).save(first)
+    Image.fromarray(textured_image(180, 320, seed=2)).save(second)
+    photo = folder / "a.jpg"
+    photo.write_bytes(first.read_bytes())
+    real_make_clip = pipeline.make_clip
+
+    def saved_again_once_begun(*args, **kwargs):  # the user's save lands after the job began
+        photo.write_bytes(second.read_bytes())
+        return real_make_clip(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "make_clip", saved_again_once_begun)
+    [made] = run_folder(folder, tmp_path / "out", quick_preset, FAST, False).results
+    assert made.status == "failed" and "changed while its clip was made" in made.error
+    assert (tmp_path / "out" / "a.mp4").is_file(), "the clip made is kept"
+    monkeypatch.setattr(pipeline, "make_clip", real_make_clip)
+    photo.write_bytes(first.read_bytes())  # the first bytes are back
+    [again] = run_folder(folder, tmp_path / "out", quick_preset, FAST, False).results
+    assert again.status == "done", "the clip of the other bytes was taken for up to date"
+    reference = run_folder(_copy_of(photo, tmp_path / "ref"), tmp_path / "ref-out",
+                           quick_preset, FAST, False).results[0]
+    assert Path(again.output).read_bytes() == Path(reference.output).read_bytes()
+
+
+def _copy_of(photo: Path, folder: Path) -> Path:
+    folder.mkdir()
+    (folder / photo.name).write_bytes(photo.read_bytes())
+    return folder
+
+
 def test_fail_fast_stops_at_the_first_failure(tmp_path, quick_preset):
     folder = tmp_path / "in"
     folder.mkdir()

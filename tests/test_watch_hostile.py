@@ -769,3 +769,40 @@ def test_the_same_photo_dropped_again_is_not_made_again(tmp_path):
     assert "IMG_0001.jpg: clip already complete" in daemon_log(tmp_path)
     assert sorted(p.read_bytes() for p in (inbox / "done").iterdir()) == sorted(
         [first, first, photo_bytes(tmp_path, 2)])
+
+
+def test_a_photo_saved_over_with_its_size_and_time_kept_is_made_again(tmp_path):
+    """A photo saved over while its clip was made, with the same size and time (exiftool -P
+    rewriting a tag in place; a fixed-size scan): the daemon filed the new photo in done/
+    with the old photo's clip, and the new one never got its own."""
+    from .test_watch import held_encoders
+
+    inbox, outbox, _ = folders(tmp_path)
+    preset = preset_file(tmp_path, 4.0, fps=25.0)
+    first, second = (tmp_path / "first.bmp", tmp_path / "second.bmp")
+    Image.fromarray(textured_image(180, 320, seed=1)).save(first)
+    Image.fromarray(textured_image(180, 320, seed=2)).save(second)
+    assert first.stat().st_size == second.stat().st_size  # BMP: the size of the picture
+    drop(inbox, "x.bmp", first.read_bytes())
+    taken = (inbox / "x.bmp").stat()
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        encoders = held_encoders(outbox, "x")  # read already: its clip is being encoded
+        (inbox / "x.bmp").write_bytes(second.read_bytes())
+        os.utime(inbox / "x.bmp", ns=(taken.st_atime_ns, taken.st_mtime_ns))
+        for pid in encoders:
+            os.kill(pid, signal.SIGCONT)
+        wait_for(lambda: (inbox / "done" / "x.bmp").exists(), 240, "x.bmp filed in done/")
+    finally:
+        assert stop(daemon) == 0
+    log = daemon_log(tmp_path)
+    assert "x.bmp changed while it was processed" in log, log
+    assert log.count("start x.bmp") == 2, log
+    assert (inbox / "done" / "x.bmp").read_bytes() == second.read_bytes()
+    reference = tmp_path / "reference"
+    reference.mkdir()
+    (reference / "x.bmp").write_bytes(second.read_bytes())
+    subprocess.run([*CLI, str(reference), "-o", str(reference / "out"), "--preset", str(preset),
+                    "--depth", "ramp", "--planner", "center", "--quiet"], check=True)
+    assert (outbox / "x.mp4").read_bytes() == (reference / "out" / "x.mp4").read_bytes(), \
+        "the clip is not the new photo's"
