@@ -372,12 +372,18 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
     # Split only where the two sides really differ in depth within reach.
     small_band = (cv2.dilate(edges, window) > 0) & (farthest > nearest * 1.001)
     # Which side each pixel is on, judged over twice the band, so that clean pixels of both
-    # sides lie within reach of every band pixel.
+    # sides lie within reach of every band pixel. A pixel is judged where its window surely
+    # holds both sides of the edge (an edge marks a pixel on each, 1 to 1.5 px apart): at the
+    # rim of the window's reach it held one side alone, and a one-pixel ring of background
+    # around every object was taken for the object's side (a line of a lantern's glow moved
+    # with it, and the clean background beside the edge shrank to a strip: blocks of darker
+    # background behind its top).
     reach = 2 * band_px + 2
     wide = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1,) * 2)
     near_depth_wide = cv2.erode(depth, wide)
     far_depth_wide = cv2.dilate(depth, wide)
-    in_reach = cv2.dilate(edges, wide) > 0
+    judged = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * (reach - 2) + 1,) * 2)
+    in_reach = cv2.dilate(edges, judged) > 0
     closer = np.abs(1 / depth - 1 / near_depth_wide) <= np.abs(1 / depth - 1 / far_depth_wide)
     near_side = closer & in_reach
     far_side = ~closer & in_reach
