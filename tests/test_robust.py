@@ -42,13 +42,19 @@ def test_corpus_every_bad_file_reported_every_good_one_rendered(tmp_path, quick_
     assert {p.name: p.read_bytes() for p in (tmp_path / "in").iterdir()} == before
 
 
-def test_rerun_skips_up_to_date_clips_and_force_redoes_them(tmp_path, quick_preset):
+def two_photos_made(tmp_path: Path, preset) -> Path:
+    """A folder of a.jpg and b.jpg whose clips are made into tmp_path / "out"."""
     folder = tmp_path / "in"
     folder.mkdir()
     Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
     Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "b.jpg")
-    first = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    first = run_folder(folder, tmp_path / "out", preset, FAST, False)
     assert [r.status for r in first.results] == ["done", "done"]
+    return folder
+
+
+def test_rerun_skips_up_to_date_clips_and_force_redoes_them(tmp_path, quick_preset):
+    folder = two_photos_made(tmp_path, quick_preset)
     mtime = (tmp_path / "out" / "a.mp4").stat().st_mtime_ns
     second = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
     assert [r.status for r in second.results] == ["skipped", "skipped"]
@@ -67,12 +73,7 @@ def test_photos_with_new_times_but_the_same_bytes_are_not_made_again(tmp_path, q
     """A folder copied to another disk without its times (cp -r, a sync tool, a zip) has new
     modification times and the same bytes: every clip was made again, for nothing. Other
     bytes under the same size and time (an edit that kept the photo's time) are made again."""
-    folder = tmp_path / "in"
-    folder.mkdir()
-    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
-    Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "b.jpg")
-    first = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
-    assert [r.status for r in first.results] == ["done", "done"]
+    folder = two_photos_made(tmp_path, quick_preset)
     clip = (tmp_path / "out" / "a.mp4").stat().st_mtime_ns
     later = (folder / "a.jpg").stat().st_mtime_ns + 5_000_000_000
     for photo in folder.iterdir():  # the same bytes, written again five seconds later
