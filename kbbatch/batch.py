@@ -24,7 +24,7 @@ from kbbatch.images import (
     ImageReadError,
     atomic_output,
     broken_link_reason,
-    read_image,
+    read_photo,
     scan_folder,
     upright_size,
 )
@@ -542,7 +542,7 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         # an interrupted clip is queued again, as one whose run was stopped, and so is one its
         # full disk could not take
         state = "queued" if result.status in ("interrupted", "no_space") else result.status
-        journal.finish(job.source, state, result.seconds, result.error, clip)
+        journal.finish(job.source, state, result.seconds, result.error, clip, result.content)
     except (JournalError, OSError) as error:
         return ClipResult(str(job.source), None, "failed", 0.0, error=f"{job.source}: {error}")
     return result
@@ -637,7 +637,6 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     Into an existing manifest: its entries stay; a photo whose entry already has crops (or is
     excluded) keeps it unless replan; a planned photo's entry keeps the user's own fields, and
     is planned with its preset, duration and depth file."""
-    from kbbatch.fingerprint import file_sha256
     from kbbatch.manifest import plan_to_entry, write_manifest
     from kbbatch.review import contact_sheet, draw_plan
 
@@ -649,7 +648,8 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     existing = existing_manifest(manifest_path)
     check_writable(manifest_path.parent)  # before the planning, not after it
     preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
-    if preview_dir.resolve() == folder.resolve():  # the next render took the sheet for a photo
+    if preview_dir.resolve() == folder.resolve() or (  # a render took the sheet for a photo
+            preview_dir.is_dir() and os.path.samefile(preview_dir, folder)):
         raise OutputFolderError(
             f"{preview_dir}: the previews of {manifest_path.name} go into this folder, and it "
             "is the photo folder (the contact sheet would be made into a clip); give the "
@@ -670,12 +670,12 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             continue
         try:
             photo_preset, photo_options = apply_entry(entry, preset, options)
-            photo = read_image(source)
+            photo, content = read_photo(source)  # the bytes planned are those named
             check_photo_size(photo.shape[1], photo.shape[0], photo_preset, source)
-            working, depth_result, depth = working_depth(photo, source, photo_options)
+            working, depth_result, depth = working_depth(photo, source, photo_options, content)
             plan = plan_photo(working, depth_result, depth, photo_preset, photo_options.planner)
             planned = plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1],
-                                    file_sha256(source))
+                                    content)
             planned_entries[source.name] = planned
             preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
             preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"

@@ -256,9 +256,9 @@ def read_image(path: Path) -> np.ndarray:
 def read_photo(path: Path, hashed: bool = True) -> tuple[np.ndarray, str]:
     """read_image's array and the sha256 of the very bytes decoded ("" unless hashed).
 
-    The file is read once: hashed by one read and decoded from another, a photo saved again
-    between them had its clip journaled as made from bytes it was not made from, and once the
-    file held those bytes again, every run took the wrong clip for up to date."""
+    Both come from one read of the file: hashed by one read and decoded from another, a photo
+    saved again between them had its clip journaled as made from bytes it was not made from,
+    and once the file held those bytes again, every run took the wrong clip for up to date."""
     path = Path(path)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -271,8 +271,10 @@ def read_photo(path: Path, hashed: bool = True) -> tuple[np.ndarray, str]:
 
 
 MAX_PHOTO_BYTES = 2 << 30
-"""Larger files are refused before they are read into memory (no photo under MAX_SOURCE_PIXELS
-needs more: 120 MP of 16-bit RGB is 720 MB)."""
+"""Larger files are refused before they are read into memory: a photo is held whole while it
+is decoded, so that it is hashed and decoded from the same bytes (120 MP of 16-bit RGB
+uncompressed is 720 MB; a layered TIFF or a JPEG decoded at a reduced size may be larger,
+and is refused)."""
 
 
 def _photo_bytes(path: Path) -> bytes:
@@ -337,8 +339,6 @@ def _read_image(path: Path, data: bytes) -> np.ndarray:
             return _to_rgb8(image)
     except ImageReadError:
         raise
-    except PermissionError as error:
-        raise ImageReadError(path, unreadable_reason(error)) from error
     except UnidentifiedImageError as error:
         picture = (_read_with_opencv(path, data) if path.suffix.lower() in (".tif", ".tiff")
                    else None)

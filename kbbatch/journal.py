@@ -238,11 +238,13 @@ class Journal:
 
     @_guarded
     def finish(self, source: Path, state: str, seconds: float, error: str | None = None,
-               clip: str | None = None) -> None:
+               clip: str | None = None, content: str | None = None) -> None:
+        """content: the sha256 of the bytes the clip was made from, when known (they are the
+        job's unless the photo was replaced between its start and its read)."""
         self.connection.execute(
-            "UPDATE jobs SET state = ?, seconds = ?, error = ?, clip = ?, updated = ?"
-            " WHERE source = ?",
-            (state, seconds, _message(error), clip, time.time(), _stored(source)))
+            "UPDATE jobs SET state = ?, seconds = ?, error = ?, clip = ?, updated = ?,"
+            " content = COALESCE(?, content) WHERE source = ?",
+            (state, seconds, _message(error), clip, time.time(), content, _stored(source)))
 
     @_guarded
     def moved(self, source: Path, destination: Path) -> None:

@@ -404,8 +404,11 @@ class JobRunner:
                 self.journal.photo_gone(source, s.outbox)
                 log.info("dropped %s: the photo was removed before its clip was complete",
                          job.name)
-            elif output is not None and output.is_file() and source.is_file():
-                # The clip was complete (renamed) before the crash; only the photo's move is left.
+            elif (output is not None and output.is_file() and source.is_file()
+                  and output.stat().st_mtime >= job.updated):
+                # The clip was complete (renamed) before the crash; only the photo's move is
+                # left. (A clip older than the job is an earlier make's: the photo was edited,
+                # and its new clip was not finished.)
                 self.journal.finish(source, "done", job.seconds or 0.0, None,
                                     source_fingerprint(output))
                 self.move_source(source, DONE_FOLDER)
@@ -563,7 +566,11 @@ class JobRunner:
             if result.status == "done":
                 with contextlib.suppress(OSError):
                     clip = source_fingerprint(self.settings.outbox / job.output)
-            self.journal.finish(job.path, result.status, result.seconds, result.error, clip)
+            # journaled under the bytes it was made from: read after the photo was replaced,
+            # they are the new photo's, and a cross-path look-up by content must not take
+            # the clip for the deleted one's
+            self.journal.finish(job.path, result.status, result.seconds, result.error, clip,
+                                result.content)
             del self.in_flight[future]
             if result.status == "done" and (replaced or not job.path.exists()):
                 # Deleted while its frames rendered: its clip no longer belongs to the inbox
@@ -664,7 +671,8 @@ class JobRunner:
         try:
             if source_fingerprint(job.path) != job.fingerprint:
                 return True
-            return bool(job.content) and file_sha256(job.path) != job.content
+            return (result.status == "done" and bool(job.content)
+                    and file_sha256(job.path) != job.content)
         except FileNotFoundError:
             return False
         except OSError:  # unreadable now: taken again, to fail by name if it stays so

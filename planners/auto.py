@@ -140,7 +140,10 @@ class Subject:
         saliency = request.saliency()
         if saliency is None:
             return None
-        subject = cls(saliency >= SALIENT_THRESHOLD)
+        if saliency.shape != (height, width):  # a map of another size: brought to the depth's
+            saliency = cv2.resize(saliency.astype(np.float32), (width, height),
+                                  interpolation=cv2.INTER_LINEAR)
+        subject = cls(np.nan_to_num(saliency) >= SALIENT_THRESHOLD)
         return subject if subject.area >= SUBJECT_MIN_FRACTION * width * height else None
 
     def held(self, left: np.ndarray, top: np.ndarray, right: np.ndarray, bottom: np.ndarray
@@ -165,6 +168,8 @@ class Subject:
         the subject, if that is most of it and clearly more than where it is; of such
         places, the one nearest to centring the subject (its edge, at the nearest place to
         the photo's centre, is cut first when the crop zooms in)."""
+        if self.area <= 0:
+            return wide
         height, width = self.shape
         margin_x = (1 - paper.START_CROP_FRACTION) / 2 * width
         margin_y = (1 - paper.START_CROP_FRACTION) / 2 * height
@@ -301,7 +306,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
         head = box_point(box, HEAD_HEIGHT)
         framed = [c for c in candidates if keeps(c.crop, head)]
         candidates = framed or candidates
-    elif subject is not None:  # the end crop keeps as much of the subject as the start's
+    elif subject is not None:  # no end crop keeps less of it than the unshifted one
         least = subject.held_by(tight) - SUBJECT_TIE_FRACTION * subject.area
         framed = [c for c in candidates if subject.held_by(c.crop) >= least]
         candidates = framed or candidates

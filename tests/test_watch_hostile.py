@@ -3,6 +3,7 @@ name, a read-only inbox, a full outbox, a writer pausing longer than --settle, t
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -806,3 +807,85 @@ def test_a_photo_saved_over_with_its_size_and_time_kept_is_made_again(tmp_path):
                     "--depth", "ramp", "--planner", "center", "--quiet"], check=True)
     assert (outbox / "x.mp4").read_bytes() == (reference / "out" / "x.mp4").read_bytes(), \
         "the clip is not the new photo's"
+
+
+def test_a_clip_of_a_photo_replaced_before_its_read_is_journaled_under_the_bytes_read(
+        tmp_path):
+    """X.jpg (bytes A) taken, then deleted and another X.jpg (bytes B) dropped before the
+    worker read it: the clip, made from B, was journaled under A, and A dropped again later
+    was called up to date with B's clip. (The worker's result is given, not rendered: the
+    race between a take and a worker's read cannot be timed in a real daemon.)"""
+    from concurrent.futures import Future
+
+    from kbbatch.fingerprint import file_sha256
+    from kbbatch.journal import source_fingerprint
+    from kbbatch.pipeline import ClipOptions, ClipResult, clip_fingerprints
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import InFlight, JobRunner, WatchSettings
+
+    inbox, outbox = tmp_path / "in", tmp_path / "out"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset, options = load_preset("preview"), ClipOptions()
+    journal = Journal(outbox)
+    requeued: list[Path] = []
+    runner = JobRunner(WatchSettings(inbox, outbox, preset, options), journal, False,
+                       tmp_path / "reports", lambda path, renamed: requeued.append(path))
+    photo = inbox / "X.jpg"
+    photo.write_bytes(photo_bytes(tmp_path, 1))
+    taken, content_a = source_fingerprint(photo), file_sha256(photo)
+    settings = clip_fingerprints(photo, content_a, preset, options, None)
+    journal.start(photo, taken, settings[0], "X.mp4", content_a)
+    made = Future()
+    runner.in_flight[made] = InFlight(photo, taken, "X.mp4", "X.mp4", False, False, content_a)
+    photo.unlink()
+    photo.write_bytes(photo_bytes(tmp_path, 2))  # another photo, read by the worker
+    (outbox / "X.mp4").write_bytes(b"the clip of the second photo")
+    made.set_result(ClipResult(str(photo), str(outbox / "X.mp4"), "done", 1.0,
+                               content=file_sha256(photo)))
+    runner.finish_completed(removed={photo})
+    assert requeued == [photo], "the second photo is one of its own, taken again"
+    photo.unlink()
+    photo.write_bytes(photo_bytes(tmp_path, 1))  # the first photo dropped again
+    assert not journal.is_up_to_date(photo, source_fingerprint(photo), settings,
+                                     outbox / "X.mp4", content_a)
+    journal.close()
+
+
+def test_a_daemon_killed_while_it_remakes_an_edited_photo_makes_it_again(tmp_path):
+    """Killed while an edited photo's clip was made again, the daemon's restart found the
+    job running and a clip of its name there (the earlier make's) and recorded it as done:
+    the edit never got its clip. A clip older than its job is now not taken for it."""
+    from .test_watch import held_encoders
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    preset = preset_file(tmp_path, 4.0, fps=25.0)
+    daemon = start_daemon(inbox, outbox, preset, "--keep-sources")
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "a.jpg's first clip")
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 2))  # edited
+        encoders = held_encoders(outbox, "a")
+    finally:
+        daemon.send_signal(signal.SIGKILL)
+        daemon.wait(timeout=30)
+    for pid in encoders:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    log = tmp_path / "restarted.log"
+    restarted = start_daemon(inbox, outbox, preset, "--keep-sources", log_path=log)
+    try:
+        wait_for(lambda: log.exists() and ("done a.jpg" in log.read_text()
+                                           or "recovered a.jpg" in log.read_text()),
+                 240, "the edited photo's clip")
+    finally:
+        assert stop(restarted) == 0
+    assert "recovered a.jpg" not in log.read_text(), log.read_text()
+    reference = tmp_path / "reference"
+    reference.mkdir()
+    (reference / "a.jpg").write_bytes(photo_bytes(tmp_path, 2))
+    subprocess.run([*CLI, str(reference), "-o", str(reference / "out"), "--preset", str(preset),
+                    "--depth", "ramp", "--planner", "center", "--quiet"], check=True)
+    assert (outbox / "a.mp4").read_bytes() == (reference / "out" / "a.mp4").read_bytes()

@@ -37,7 +37,13 @@ from kbbatch.depth import DepthError
 from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.file import load_map
 from kbbatch.fingerprint import clip_inputs, file_sha256
-from kbbatch.images import ImageReadError, atomic_output, list_images, read_image
+from kbbatch.images import (
+    ImageReadError,
+    atomic_output,
+    list_images,
+    read_image,
+    read_photo,
+)
 from kbbatch.manifest import (
     ManifestEntry,
     ManifestError,
@@ -326,9 +332,9 @@ class ReviewSession:
 
     @staticmethod
     def _compute_plan(source: Path, preset: Preset, options: ClipOptions) -> dict[str, Any]:
-        photo = read_image(source)
+        photo, content = read_photo(source)
         check_photo_size(photo.shape[1], photo.shape[0], preset, source)  # as plan and render
-        working, depth_result, depth = working_depth(photo, source, options)
+        working, depth_result, depth = working_depth(photo, source, options, content)
         plan = plan_photo(working, depth_result, depth, preset, options.planner)
         return {"entry": plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1]),
                 "width_px": photo.shape[1], "height_px": photo.shape[0]}
