@@ -280,7 +280,10 @@ def prepare_scene(
 def plan_photo(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray,
                preset: Preset, planner: str) -> Plan:
     """The named planner's plan; ISNet's map, if the planner asks for it, is the one the depth
-    stage worked out (after a depth cache hit, it is worked out now: the same map)."""
+    stage worked out (after a depth cache hit, it is worked out now: the same map). With the
+    ramp prior, chosen to run no network, there is none."""
+    if depth_result.backend == "ramp":
+        return get_planner(planner).plan(PlanRequest(working, depth, preset))
     context = depth_result.segmentation or SceneContext(working)
     return get_planner(planner).plan(PlanRequest(working, depth, preset,
                                                  lambda: context.saliency))

@@ -793,3 +793,21 @@ def test_plan_refuses_previews_that_would_go_into_the_photo_folder(tmp_path, qui
                     show_progress=False)
     assert sorted(p.name for p in folder.iterdir()) == ["a.jpg"]
     assert not (tmp_path / "holiday.json").exists()
+
+
+def test_the_ramp_prior_runs_no_network_to_frame_a_subject(monkeypatch):
+    """`--depth ramp` is chosen to run no network: ISNet ran for the framing of every photo the
+    preset's shape could not show whole (2.5 minutes more of the test suite, where the models
+    are present). Any other depth source asks for it there."""
+    from kbbatch import segment
+    from kbbatch.depth import DepthResult
+    from kbbatch.pipeline import plan_photo
+
+    asked: list = []
+    monkeypatch.setattr(segment, "salient_mask", lambda image: asked.append(True))
+    request = request_for(1024, 576, "social")
+    disparity = np.ones((576, 1024), np.float32)
+    for backend, expected in (("ramp", []), ("popup", [True])):
+        plan_photo(request.image, DepthResult(disparity, backend, "test"), request.depth,
+                   request.preset, "auto")
+        assert asked == expected, backend
