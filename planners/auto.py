@@ -103,19 +103,30 @@ def wide_and_tight(request: PlanRequest, box: tuple[float, float, float, float] 
     with no such object, over the subject ISNet holds salient (Subject.framed_by).
     """
     height, width = request.depth.shape
-    wide = fit_crop(width, height, request.preset.aspect, paper.START_CROP_FRACTION)
+    wide = aspect_crop(request)
     if subject is not None:
         wide = subject.framed_by(wide)
     if box is not None:
         head_x, head_y = box_point(box, HEAD_HEIGHT)
         # Kept inside the same 97 % area: moved within the margin box, then shifted back.
-        margin_x = (1 - paper.START_CROP_FRACTION) / 2 * width
-        margin_y = (1 - paper.START_CROP_FRACTION) / 2 * height
+        margin_x, margin_y = crop_margins(width, height)
         placed = zoomed(wide, 1.0, (head_x - margin_x, head_y + wide.height_px / 6 - margin_y))
         placed = clamp_inside(placed, width - 2 * margin_x, height - 2 * margin_y)
         wide = zoomed(placed, 1.0, (placed.center_x_px + margin_x,
                                     placed.center_y_px + margin_y))
     return wide, zoomed(wide, request.preset.zoom)
+
+
+def aspect_crop(request: PlanRequest) -> Crop:
+    """The widest crop of the output aspect inside START_CROP_FRACTION of the photo, centred."""
+    height, width = request.depth.shape
+    return fit_crop(width, height, request.preset.aspect, paper.START_CROP_FRACTION)
+
+
+def crop_margins(width: float, height: float) -> tuple[float, float]:
+    """The margins (x, y) that START_CROP_FRACTION leaves around a crop."""
+    return ((1 - paper.START_CROP_FRACTION) / 2 * width,
+            (1 - paper.START_CROP_FRACTION) / 2 * height)
 
 
 class Subject:
@@ -134,7 +145,7 @@ class Subject:
         photo's width or height and ISNet's map is there (else it is not asked for) and holds
         at least SUBJECT_MIN_FRACTION of the photo."""
         height, width = request.depth.shape
-        wide = fit_crop(width, height, request.preset.aspect, paper.START_CROP_FRACTION)
+        wide = aspect_crop(request)
         if min(wide.width_px / width, wide.height_px / height) > FRAMING_FREE_FRACTION:
             return None
         saliency = request.saliency()
@@ -171,8 +182,7 @@ class Subject:
         if self.area <= 0:
             return wide
         height, width = self.shape
-        margin_x = (1 - paper.START_CROP_FRACTION) / 2 * width
-        margin_y = (1 - paper.START_CROP_FRACTION) / 2 * height
+        margin_x, margin_y = crop_margins(width, height)
 
         def centres(margin: float, size: float, extent: int, now: float) -> np.ndarray:
             low, high = margin + size / 2, extent - margin - size / 2
