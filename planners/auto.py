@@ -78,6 +78,21 @@ that centres the subject best is taken."""
 SUBJECT_STEP_PX = 4
 """Placements are tried this far apart (working px)."""
 
+SUBJECT_PIECE_FRACTION = 0.01
+"""The subject's extent (top, bottom, sides) is that of its pieces of at least this share of
+its area: a stray salient speck does not stretch it (a quantile of its rows would cut a
+bottle's neck)."""
+
+SUBJECT_HEADROOM_FRACTION = 0.1
+"""A subject taller than the crop (and no wider) is framed from its top, this share of the
+crop's height below the crop's top edge: centred, a landscape clip of two dogs looking out
+of a window, one above the other, cut the upper dog's eyes off in both end frames."""
+
+SUBJECT_SOLID_FRACTION = 0.25
+"""... if it covers at least this share of its extent's box: salient streaks scattered over
+a wood texture are no subject with a top (two dogs cover 0.43 of theirs, a table with a
+bottle and a drum on a beanbag 0.54)."""
+
 MOTION_WEIGHT = 0.02
 """Score of a candidate that does not move sideways at all, fading out at MIN_VISIBLE_SHIFT."""
 
@@ -138,6 +153,20 @@ class Subject:
         self.summed = cv2.integral(salient.astype(np.uint8)).astype(np.float64)
         ys, xs = np.nonzero(salient)
         self.centre = (float(xs.mean()), float(ys.mean())) if len(xs) else (0.0, 0.0)
+        self.top = self.bottom = self.left = self.right = self.top_x = 0.0
+        if len(xs):
+            count, labels, stats, _ = cv2.connectedComponentsWithStats(
+                salient.astype(np.uint8), connectivity=8)
+            kept = 1 + np.flatnonzero(stats[1:, cv2.CC_STAT_AREA]
+                                      >= SUBJECT_PIECE_FRACTION * self.area)
+            if not kept.size:  # only specks: all of them
+                kept = np.arange(1, count)
+            pieces = stats[kept]
+            self.left = float(pieces[:, cv2.CC_STAT_LEFT].min())
+            self.top = float(pieces[:, cv2.CC_STAT_TOP].min())
+            self.right = float((pieces[:, cv2.CC_STAT_LEFT] + pieces[:, cv2.CC_STAT_WIDTH]).max())
+            self.bottom = float((pieces[:, cv2.CC_STAT_TOP] + pieces[:, cv2.CC_STAT_HEIGHT]).max())
+            self.top_x = float(np.flatnonzero(np.isin(labels[int(self.top)], kept)).mean())
 
     @classmethod
     def of(cls, request: PlanRequest) -> Subject | None:
@@ -174,11 +203,23 @@ class Subject:
         return float(self.held(*(np.array(v) for v in (crop.left_px, crop.top_px,
                                                           crop.right_px, crop.bottom_px))))
 
+    def too_tall_for(self, crop: Crop) -> bool:
+        """Whether the subject fits the crop's width but not its height (a person, an animal,
+        a tower in a portrait photo under a landscape preset)."""
+        height, width = self.bottom - self.top, self.right - self.left
+        return (height > crop.height_px and width <= crop.width_px
+                and self.area >= SUBJECT_SOLID_FRACTION * height * width)
+
+    def top_point(self) -> tuple[float, float]:
+        """Where the subject's top is: what a crop that cannot hold it all keeps."""
+        return self.top_x, self.top
+
     def framed_by(self, wide: Crop) -> Crop:
         """wide moved, within START_CROP_FRACTION of the photo, to where it holds the most of
         the subject, if that is most of it and clearly more than where it is; of such
         places, the one nearest to centring the subject (its edge, at the nearest place to
-        the photo's centre, is cut first when the crop zooms in)."""
+        the photo's centre, is cut first when the crop zooms in). A subject too tall for it
+        is framed from its top (SUBJECT_HEADROOM_FRACTION)."""
         if self.area <= 0:
             return wide
         height, width = self.shape
@@ -193,9 +234,13 @@ class Subject:
         grid_x, grid_y = np.meshgrid(xs, ys)
         held = self.held(grid_x - wide.width_px / 2, grid_y - wide.height_px / 2,
                          grid_x + wide.width_px / 2, grid_y + wide.height_px / 2)
-        now = self.held_by(wide)
-        if held.max() < max(now + SUBJECT_GAIN_FRACTION * self.area,
-                            SUBJECT_WHOLE_FRACTION * self.area):
+        if self.too_tall_for(wide):
+            top_y = self.top - SUBJECT_HEADROOM_FRACTION * wide.height_px + wide.height_px / 2
+            row = int(np.argmin(np.abs(ys - np.clip(top_y, ys.min(), ys.max()))))
+            held, ys = held[row:row + 1], ys[row:row + 1]
+            grid_x, grid_y = grid_x[row:row + 1], grid_y[row:row + 1]
+        elif held.max() < max(self.held_by(wide) + SUBJECT_GAIN_FRACTION * self.area,
+                              SUBJECT_WHOLE_FRACTION * self.area):
             return wide
         good = held >= held.max() - SUBJECT_TIE_FRACTION * self.area
         distance = np.hypot(grid_x - self.centre[0], grid_y - self.centre[1])
@@ -316,9 +361,13 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
         head = box_point(box, HEAD_HEIGHT)
         framed = [c for c in candidates if keeps(c.crop, head)]
         candidates = framed or candidates
-    elif subject is not None:  # no end crop keeps less of it than the unshifted one
-        least = subject.held_by(tight) - SUBJECT_TIE_FRACTION * subject.area
-        framed = [c for c in candidates if subject.held_by(c.crop) >= least]
+    elif subject is not None:
+        framed = []
+        if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from
+            framed = [c for c in candidates if keeps(c.crop, subject.top_point())]
+        if not framed:  # no end crop keeps less of it than the unshifted one
+            least = subject.held_by(tight) - SUBJECT_TIE_FRACTION * subject.area
+            framed = [c for c in candidates if subject.held_by(c.crop) >= least]
         candidates = framed or candidates
     return wide, candidates, tight
 

@@ -45,9 +45,10 @@ def test_crops_lie_inside_and_keep_the_output_aspect(size, preset_name, planner)
 
 def subject_request(preset_name: str, subject: np.ndarray, asked: list | None = None
                     ) -> PlanRequest:
-    """A flat 1024 x 576 scene whose salient map is subject (a probability map)."""
-    request = request_for(1024, 576, preset_name, disparity=np.full((576, 1024), 8.0,
-                                                                   np.float32))
+    """A flat scene of subject's size whose salient map is subject (a probability map)."""
+    height, width = subject.shape
+    request = request_for(width, height, preset_name,
+                          disparity=np.full((height, width), 8.0, np.float32))
 
     def saliency() -> np.ndarray:
         if asked is not None:
@@ -82,6 +83,26 @@ def test_a_subject_no_crop_can_hold_or_none_at_all_leaves_the_crop_centred():
     for subject in (pots, speck, np.zeros((576, 1024), np.float32)):
         plan = get_planner("auto").plan(subject_request("social", subject))
         assert plan.start.center_x_px == pytest.approx(512)
+
+
+def test_a_subject_taller_than_the_crop_is_framed_from_its_top():
+    """Centred, a landscape clip of a portrait photo of two dogs, one above the other, cut the
+    upper one's eyes off in both end frames; a bottle's neck is its top, however thin."""
+    bottle = np.zeros((1024, 576), np.float32)
+    bottle[150:200, 270:282] = 0.9  # the neck
+    bottle[200:800, 200:350] = 0.9
+    bottle[1000:1004, 500:504] = 0.9  # a speck far below: no part of the subject's extent
+    plan = get_planner("auto").plan(subject_request("slideshow", bottle))
+    for crop in (plan.start, plan.end):
+        assert crop.top_px + 0.05 * crop.height_px <= 150, crop
+        assert crop.left_px <= 200 and crop.right_px >= 350, crop
+    assert plan.start.top_px >= 150 - 0.2 * plan.start.height_px  # headroom, not the sky
+    # Salient streaks over a texture are no subject with a top: centred as before.
+    streaks = np.zeros((1024, 576), np.float32)
+    streaks[:, 100:450:40] = 0.9
+    streaks[:, 101:450:40] = 0.9
+    plan = get_planner("auto").plan(subject_request("slideshow", streaks))
+    assert plan.start.center_y_px == pytest.approx(512)
 
 
 def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
