@@ -28,7 +28,7 @@ from kbbatch.camera import (
 from kbbatch.inpaint import visible_region
 from kbbatch.planners import PlanRequest
 from kbbatch.render import PointCloud, back_project, coverage, depth_edges
-from kbbatch.segment import SALIENT_THRESHOLD
+from kbbatch.segment import SALIENT_THRESHOLD, Detection
 
 SEARCH_LONG_SIDE_PX = 256
 """Candidates are rendered at this long side (a quarter of the working size)."""
@@ -53,6 +53,15 @@ HEAD_HEIGHT = 0.12
 allows it: the least-disocclusion objective alone likes to crop heads off."""
 
 HEAD_MARGIN_FRACTION = 0.05
+
+ANIMAL_CLASSES = ("bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear", "zebra",
+                  "giraffe")
+"""An animal's head is where its salient outline is highest, not its box's top centre: a
+walrus lying on a beach holds its head up at one end of its box (framed by the top centre,
+a vertical clip cut its face in half)."""
+
+ANIMAL_OUTLINE_MIN_FRACTION = 0.2
+"""ISNet's outline inside the box is used when it covers at least this share of the box."""
 
 FRAMING_FREE_FRACTION = 0.8
 """Where the widest crop of the preset's shape shows at most this share of the photo's width
@@ -109,7 +118,7 @@ class Candidate:
     score: float
 
 
-def wide_and_tight(request: PlanRequest, box: tuple[float, float, float, float] | None = None,
+def wide_and_tight(request: PlanRequest, head: tuple[float, float] | None = None,
                    subject: Subject | None = None) -> tuple[Crop, Crop]:
     """The widest crop of the output aspect inside 97 % of the image, and it zoomed.
 
@@ -121,8 +130,8 @@ def wide_and_tight(request: PlanRequest, box: tuple[float, float, float, float] 
     wide = aspect_crop(request)
     if subject is not None:
         wide = subject.framed_by(wide)
-    if box is not None:
-        head_x, head_y = box_point(box, HEAD_HEIGHT)
+    if head is not None:
+        head_x, head_y = head
         # Kept inside the same 97 % area: moved within the margin box, then shifted back.
         margin_x, margin_y = crop_margins(width, height)
         placed = zoomed(wide, 1.0, (head_x - margin_x, head_y + wide.height_px / 6 - margin_y))
@@ -142,6 +151,23 @@ def crop_margins(width: float, height: float) -> tuple[float, float]:
     """The margins (x, y) that START_CROP_FRACTION leaves around a crop."""
     return ((1 - paper.START_CROP_FRACTION) / 2 * width,
             (1 - paper.START_CROP_FRACTION) / 2 * height)
+
+
+def framing_mask(request: PlanRequest) -> np.ndarray | None:
+    """What ISNet holds salient, at the depth's size, where the widest crop shows at most
+    FRAMING_FREE_FRACTION of the photo's width or height (elsewhere framing has no freedom,
+    and ISNet is not run again after a depth cache hit for it) and the map is there."""
+    height, width = request.depth.shape
+    wide = aspect_crop(request)
+    if min(wide.width_px / width, wide.height_px / height) > FRAMING_FREE_FRACTION:
+        return None
+    saliency = request.saliency()
+    if saliency is None:
+        return None
+    if saliency.shape != (height, width):  # a map of another size: brought to the depth's
+        saliency = cv2.resize(saliency.astype(np.float32), (width, height),
+                              interpolation=cv2.INTER_LINEAR)
+    return np.nan_to_num(saliency) >= SALIENT_THRESHOLD
 
 
 class Subject:
@@ -173,18 +199,11 @@ class Subject:
         """The subject, where the widest crop shows at most FRAMING_FREE_FRACTION of the
         photo's width or height and ISNet's map is there (else it is not asked for) and holds
         at least SUBJECT_MIN_FRACTION of the photo."""
-        height, width = request.depth.shape
-        wide = aspect_crop(request)
-        if min(wide.width_px / width, wide.height_px / height) > FRAMING_FREE_FRACTION:
+        salient = framing_mask(request)
+        if salient is None:
             return None
-        saliency = request.saliency()
-        if saliency is None:
-            return None
-        if saliency.shape != (height, width):  # a map of another size: brought to the depth's
-            saliency = cv2.resize(saliency.astype(np.float32), (width, height),
-                                  interpolation=cv2.INTER_LINEAR)
-        subject = cls(np.nan_to_num(saliency) >= SALIENT_THRESHOLD)
-        return subject if subject.area >= SUBJECT_MIN_FRACTION * width * height else None
+        subject = cls(salient)
+        return subject if subject.area >= SUBJECT_MIN_FRACTION * salient.size else None
 
     def held(self, left: np.ndarray, top: np.ndarray, right: np.ndarray, bottom: np.ndarray
              ) -> np.ndarray:
@@ -260,17 +279,37 @@ def search_offsets(max_shift_px: float) -> np.ndarray:
     return np.vstack([grid, [[0.0, 0.0]]])
 
 
-def salient_box(request: PlanRequest) -> tuple[float, float, float, float] | None:
-    """The dominant salient object's box (the largest confident one), if any."""
+def salient_object(request: PlanRequest) -> Detection | None:
+    """The dominant salient object (the largest confident one), if any."""
     from kbbatch.segment import detect
 
-    boxes = [
+    found = [
         d for d in detect(request.image)
         if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
     ]
-    if not boxes:
+    if not found:
         return None
-    return max(boxes, key=lambda d: (d.box[2] - d.box[0]) * (d.box[3] - d.box[1])).box
+    return max(found, key=lambda d: (d.box[2] - d.box[0]) * (d.box[3] - d.box[1]))
+
+
+def head_point(request: PlanRequest, found: Detection) -> tuple[float, float]:
+    """Where the object's head is: HEAD_HEIGHT down its box, at the centre; for an animal,
+    where framing is free (framing_mask), below the highest point of its salient outline."""
+    x0, y0, x1, y1 = found.box
+    centre = box_point(found.box, HEAD_HEIGHT)
+    salient = framing_mask(request) if found.class_name in ANIMAL_CLASSES else None
+    if salient is None:
+        return centre
+    left, top = max(0, int(x0)), max(0, int(y0))
+    inside = salient[top:int(np.ceil(y1)), left:int(np.ceil(x1))]
+    if inside.sum() < ANIMAL_OUTLINE_MIN_FRACTION * max(inside.size, 1):
+        return centre
+    highest = int(np.flatnonzero(inside.any(axis=1))[0])
+    band = inside[highest:highest + max(1, int(HEAD_HEIGHT * (y1 - y0)))].astype(np.uint8)
+    _, pieces = cv2.connectedComponents(band, connectivity=8)
+    head = pieces == pieces[0, np.flatnonzero(band[0])[0]]  # the piece the highest point is in
+    head_x = left + float(np.nonzero(head)[1].mean())
+    return head_x, top + highest + HEAD_HEIGHT * (y1 - y0)
 
 
 def box_point(box: tuple[float, float, float, float], height_fraction: float
@@ -333,11 +372,12 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
     """Score every tight-crop candidate; returns the wide crop, the candidates, and the
     unshifted tight crop they were searched around."""
     height, width = request.depth.shape
-    box = salient_box(request) if use_saliency else None
-    subject = Subject.of(request) if use_saliency and box is None else None
-    wide, tight = wide_and_tight(request, box, subject)
+    found = salient_object(request) if use_saliency else None
+    head = head_point(request, found) if found else None
+    subject = Subject.of(request) if use_saliency and found is None else None
+    wide, tight = wide_and_tight(request, head, subject)
     coarse = CoarseScene.of(request.depth)
-    target = box_point(box, SALIENT_TARGET_HEIGHT) if box else None
+    target = box_point(found.box, SALIENT_TARGET_HEIGHT) if found else None
     # Every candidate shares the wide crop, hence the output window.
     region = coarse.region(wide, tight)
     searched = []
@@ -357,8 +397,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
             shift = np.hypot(dx, dy) / crop.width_px
             score += MOTION_WEIGHT * max(0.0, 1.0 - shift / MIN_VISIBLE_SHIFT_FRACTION)
         candidates.append(Candidate(crop, disoccluded, score))
-    if box is not None:
-        head = box_point(box, HEAD_HEIGHT)
+    if head is not None:
         framed = [c for c in candidates if keeps(c.crop, head)]
         candidates = framed or candidates
     elif subject is not None:

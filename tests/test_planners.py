@@ -105,6 +105,23 @@ def test_a_subject_taller_than_the_crop_is_framed_from_its_top():
     assert plan.start.center_y_px == pytest.approx(512)
 
 
+def test_an_animal_head_is_the_highest_point_of_its_outline():
+    """A walrus lying on a beach holds its head up at one end of its box: the box's top
+    centre is its back. A person's head stays the box's top centre (raised arms are higher)."""
+    from kbbatch.planners.auto import head_point
+    from kbbatch.segment import Detection
+
+    walrus = np.zeros((576, 1024), np.float32)
+    walrus[300:420, 100:700] = 0.9  # the body
+    walrus[220:300, 560:680] = 0.9  # the head, raised at the right end
+    walrus[280:300, 120:200] = 0.9  # a flipper, lower than the head
+    box = (100.0, 220.0, 700.0, 420.0)
+    social = subject_request("social", walrus)
+    head_x, head_y = head_point(social, Detection("dog", 0.9, box))
+    assert 560 <= head_x <= 680 and 220 <= head_y <= 300
+    assert head_point(social, Detection("person", 0.9, box))[0] == pytest.approx(400)
+
+
 def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
     """A 16:9 clip of a 16:9 photo (or a 3:2 one): placed as before, and ISNet is not run for
     it after a depth cache hit."""
@@ -134,6 +151,28 @@ def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
     for crop in (plan.start, plan.end):
         inside = salient[:, int(crop.left_px):int(crop.right_px) + 1].sum() / salient.sum()
         assert inside > 0.95, f"{inside:.2f} of the lantern in the {crop}"
+
+
+def test_real_walrus_face_is_in_both_crops_of_a_vertical_clip(monkeypatch):
+    """Photo 09: the big walrus (YOLOX: "elephant") holds its head up at the right end of its
+    box; framed by the box's top centre, the vertical clip cut its face in half."""
+    from kbbatch.images import read_image
+    from kbbatch.pipeline import plan_photo, working_depth
+
+    from .test_crowds import real_models_or_skip
+
+    real_models_or_skip(monkeypatch)
+    [path] = [p for p in shared_photos(1)[0].parent.glob("09_*walrus*")] or [None]
+    if path is None:
+        pytest.skip("photo 09 (the walruses) not found in ../shared/photos")
+    photo = read_image(path)
+    working, depth_result, depth = working_depth(photo, path, ClipOptions(cache_depth=False))
+    assert working.shape[:2] == (731, 1024)
+    plan = plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    face = (785, 190, 900, 300)  # working px, looked up on the photo: brow to tusks' roots
+    for crop in (plan.start, plan.end):
+        assert crop.left_px <= face[0] and crop.right_px >= face[2], crop
+        assert crop.top_px <= face[1] and crop.bottom_px >= face[3], crop
 
 
 def test_zoom_out_swaps_the_ends():
