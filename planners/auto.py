@@ -54,6 +54,12 @@ allows it: the least-disocclusion objective alone likes to crop heads off."""
 
 HEAD_MARGIN_FRACTION = 0.05
 
+GROUP_AREA_FRACTION = 0.3
+"""Objects whose box has at least this share of the dominant one's area are its group: of
+end crops that keep the dominant head, those keeping the most of the group's heads are
+searched (zooming in on five people standing side by side, the end crop cut one's eyes
+and another's face for less disocclusion)."""
+
 ANIMAL_CLASSES = ("bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear", "zebra",
                   "giraffe")
 """An animal's head is where its salient outline is highest, not its box's top centre: a
@@ -279,17 +285,19 @@ def search_offsets(max_shift_px: float) -> np.ndarray:
     return np.vstack([grid, [[0.0, 0.0]]])
 
 
-def salient_object(request: PlanRequest) -> Detection | None:
-    """The dominant salient object (the largest confident one), if any."""
+def salient_objects(request: PlanRequest) -> list[Detection]:
+    """The confident salient objects, the dominant (largest) one first, then those of at
+    least GROUP_AREA_FRACTION of its area: the group whose heads the end crop keeps."""
     from kbbatch.segment import detect
 
-    found = [
+    def area(d: Detection) -> float:
+        return (d.box[2] - d.box[0]) * (d.box[3] - d.box[1])
+
+    found = sorted((
         d for d in detect(request.image)
         if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
-    ]
-    if not found:
-        return None
-    return max(found, key=lambda d: (d.box[2] - d.box[0]) * (d.box[3] - d.box[1]))
+    ), key=area, reverse=True)
+    return [d for d in found if area(d) >= GROUP_AREA_FRACTION * area(found[0])]
 
 
 def head_point(request: PlanRequest, found: Detection) -> tuple[float, float]:
@@ -372,8 +380,10 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
     """Score every tight-crop candidate; returns the wide crop, the candidates, and the
     unshifted tight crop they were searched around."""
     height, width = request.depth.shape
-    found = salient_object(request) if use_saliency else None
-    head = head_point(request, found) if found else None
+    group = salient_objects(request) if use_saliency else []
+    found = group[0] if group else None
+    heads = [head_point(request, d) for d in group]
+    head = heads[0] if heads else None
     subject = Subject.of(request) if use_saliency and found is None else None
     wide, tight = wide_and_tight(request, head, subject)
     coarse = CoarseScene.of(request.depth)
@@ -397,9 +407,12 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
             shift = np.hypot(dx, dy) / crop.width_px
             score += MOTION_WEIGHT * max(0.0, 1.0 - shift / MIN_VISIBLE_SHIFT_FRACTION)
         candidates.append(Candidate(crop, disoccluded, score))
-    if head is not None:
-        framed = [c for c in candidates if keeps(c.crop, head)]
-        candidates = framed or candidates
+    if head is not None and candidates:
+        def kept(c: Candidate) -> tuple[bool, int]:
+            return keeps(c.crop, head), sum(keeps(c.crop, h) for h in heads)
+
+        most = max(kept(c) for c in candidates)
+        candidates = [c for c in candidates if kept(c) == most]
     elif subject is not None:
         framed = []
         if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from

@@ -122,6 +122,25 @@ def test_an_animal_head_is_the_highest_point_of_its_outline():
     assert head_point(social, Detection("person", 0.9, box))[0] == pytest.approx(400)
 
 
+def test_the_end_crop_keeps_the_most_heads_of_a_group(monkeypatch):
+    """Five people side by side (YOLOX's boxes given: the detector itself runs in the real
+    photo tests): zooming in, the end crop keeps four heads (no crop of its size keeps five),
+    where it kept only the dominant one's, cutting a neighbour's face for a smaller move."""
+    from kbbatch.planners.auto import HEAD_HEIGHT, box_point, keeps
+    from kbbatch.segment import Detection
+
+    boxes = [(x - 90.0, 30.0, x + 90.0, 530.0) for x in (100, 300, 700, 900)]
+    boxes.append((390.0, 30.0, 610.0, 560.0))  # the dominant one, in the middle
+    people = [Detection("person", 0.9, box) for box in boxes]
+    people.append(Detection("person", 0.9, (20.0, 500.0, 60.0, 560.0)))  # far too small
+    monkeypatch.setattr("kbbatch.segment.detect", lambda image: people)
+    plan = get_planner("auto").plan(request_for(1024, 576, "slideshow",
+                                                disparity=np.full((576, 1024), 8.0, np.float32)))
+    heads = [box_point(box, HEAD_HEIGHT) for box in boxes]
+    assert keeps(plan.end, heads[-1])
+    assert sum(keeps(plan.end, head) for head in heads) == 4, plan.end
+
+
 def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
     """A 16:9 clip of a 16:9 photo (or a 3:2 one): placed as before, and ISNet is not run for
     it after a depth cache hit."""
