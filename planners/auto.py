@@ -54,6 +54,11 @@ allows it: the least-disocclusion objective alone likes to crop heads off."""
 
 HEAD_MARGIN_FRACTION = 0.05
 
+HEAD_HALF_WIDTH_FRACTION = 1 / 6
+"""A person's head is about a third of its box's width (the shoulders' width or more): a
+crop keeps the whole of it, not its centre alone (a vertical end crop kept a man's head
+centre and cut his face in half)."""
+
 GROUP_AREA_FRACTION = 0.3
 """Objects whose box has at least this share of the dominant one's area are its group: of
 end crops that keep the dominant head, those keeping the most of the group's heads are
@@ -124,7 +129,16 @@ class Candidate:
     score: float
 
 
-def wide_and_tight(request: PlanRequest, head: tuple[float, float] | None = None,
+@dataclass(frozen=True)
+class Head:
+    """Where an object's head is, in working px: its centre and half its width."""
+
+    x_px: float
+    y_px: float
+    half_width_px: float
+
+
+def wide_and_tight(request: PlanRequest, head: Head | None = None,
                    subject: Subject | None = None) -> tuple[Crop, Crop]:
     """The widest crop of the output aspect inside 97 % of the image, and it zoomed.
 
@@ -137,7 +151,7 @@ def wide_and_tight(request: PlanRequest, head: tuple[float, float] | None = None
     if subject is not None:
         wide = subject.framed_by(wide)
     if head is not None:
-        head_x, head_y = head
+        head_x, head_y = head.x_px, head.y_px
         # Kept inside the same 97 % area: moved within the margin box, then shifted back.
         margin_x, margin_y = crop_margins(width, height)
         placed = zoomed(wide, 1.0, (head_x - margin_x, head_y + wide.height_px / 6 - margin_y))
@@ -235,9 +249,9 @@ class Subject:
         return (height > crop.height_px and width <= crop.width_px
                 and self.area >= SUBJECT_SOLID_FRACTION * height * width)
 
-    def top_point(self) -> tuple[float, float]:
-        """Where the subject's top is: what a crop that cannot hold it all keeps."""
-        return self.top_x, self.top
+    def top_head(self) -> Head:
+        """The subject's top: what a crop that cannot hold it all keeps."""
+        return Head(self.top_x, self.top, 0.0)
 
     def framed_by(self, wide: Crop) -> Crop:
         """wide moved, within START_CROP_FRACTION of the photo, to where it holds the most of
@@ -300,11 +314,12 @@ def salient_objects(request: PlanRequest) -> list[Detection]:
     return [d for d in found if area(d) >= GROUP_AREA_FRACTION * area(found[0])]
 
 
-def head_point(request: PlanRequest, found: Detection) -> tuple[float, float]:
+def head_of(request: PlanRequest, found: Detection) -> Head:
     """Where the object's head is: HEAD_HEIGHT down its box, at the centre; for an animal,
-    where framing is free (framing_mask), below the highest point of its salient outline."""
+    where framing is free (framing_mask), below the highest point of its salient outline,
+    as wide as the piece of the outline there."""
     x0, y0, x1, y1 = found.box
-    centre = box_point(found.box, HEAD_HEIGHT)
+    centre = Head(*box_point(found.box, HEAD_HEIGHT), HEAD_HALF_WIDTH_FRACTION * (x1 - x0))
     salient = framing_mask(request) if found.class_name in ANIMAL_CLASSES else None
     if salient is None:
         return centre
@@ -316,8 +331,9 @@ def head_point(request: PlanRequest, found: Detection) -> tuple[float, float]:
     band = inside[highest:highest + max(1, int(HEAD_HEIGHT * (y1 - y0)))].astype(np.uint8)
     _, pieces = cv2.connectedComponents(band, connectivity=8)
     head = pieces == pieces[0, np.flatnonzero(band[0])[0]]  # the piece the highest point is in
-    head_x = left + float(np.nonzero(head)[1].mean())
-    return head_x, top + highest + HEAD_HEIGHT * (y1 - y0)
+    columns = np.nonzero(head)[1]
+    return Head(left + float(columns.mean()), top + highest + HEAD_HEIGHT * (y1 - y0),
+                (columns.max() - columns.min() + 1) / 2)
 
 
 def box_point(box: tuple[float, float, float, float], height_fraction: float
@@ -326,12 +342,12 @@ def box_point(box: tuple[float, float, float, float], height_fraction: float
     return (x0 + x1) / 2, y0 + height_fraction * (y1 - y0)
 
 
-def keeps(crop: Crop, point: tuple[float, float]) -> bool:
-    """Whether a crop shows a point with a margin around it."""
-    margin_x = HEAD_MARGIN_FRACTION * crop.width_px
+def keeps(crop: Crop, head: Head) -> bool:
+    """Whether a crop shows a head whole, with a margin around it."""
+    margin_x = max(HEAD_MARGIN_FRACTION * crop.width_px, head.half_width_px)
     margin_y = HEAD_MARGIN_FRACTION * crop.height_px
-    return (crop.left_px + margin_x <= point[0] <= crop.right_px - margin_x
-            and crop.top_px + margin_y <= point[1] <= crop.bottom_px - margin_y)
+    return (crop.left_px + margin_x <= head.x_px <= crop.right_px - margin_x
+            and crop.top_px + margin_y <= head.y_px <= crop.bottom_px - margin_y)
 
 
 @dataclass(frozen=True)
@@ -382,7 +398,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
     height, width = request.depth.shape
     group = salient_objects(request) if use_saliency else []
     found = group[0] if group else None
-    heads = [head_point(request, d) for d in group]
+    heads = [head_of(request, d) for d in group]
     head = heads[0] if heads else None
     subject = Subject.of(request) if use_saliency and found is None else None
     wide, tight = wide_and_tight(request, head, subject)
@@ -416,7 +432,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
     elif subject is not None:
         framed = []
         if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from
-            framed = [c for c in candidates if keeps(c.crop, subject.top_point())]
+            framed = [c for c in candidates if keeps(c.crop, subject.top_head())]
         if not framed:  # no end crop keeps less of it than the unshifted one
             least = subject.held_by(tight) - SUBJECT_TIE_FRACTION * subject.area
             framed = [c for c in candidates if subject.held_by(c.crop) >= least]

@@ -108,7 +108,7 @@ def test_a_subject_taller_than_the_crop_is_framed_from_its_top():
 def test_an_animal_head_is_the_highest_point_of_its_outline():
     """A walrus lying on a beach holds its head up at one end of its box: the box's top
     centre is its back. A person's head stays the box's top centre (raised arms are higher)."""
-    from kbbatch.planners.auto import head_point
+    from kbbatch.planners.auto import head_of
     from kbbatch.segment import Detection
 
     walrus = np.zeros((576, 1024), np.float32)
@@ -117,16 +117,17 @@ def test_an_animal_head_is_the_highest_point_of_its_outline():
     walrus[280:300, 120:200] = 0.9  # a flipper, lower than the head
     box = (100.0, 220.0, 700.0, 420.0)
     social = subject_request("social", walrus)
-    head_x, head_y = head_point(social, Detection("dog", 0.9, box))
-    assert 560 <= head_x <= 680 and 220 <= head_y <= 300
-    assert head_point(social, Detection("person", 0.9, box))[0] == pytest.approx(400)
+    head = head_of(social, Detection("dog", 0.9, box))
+    assert 560 <= head.x_px <= 680 and 220 <= head.y_px <= 300
+    assert head.half_width_px == pytest.approx(60)
+    assert head_of(social, Detection("person", 0.9, box)).x_px == pytest.approx(400)
 
 
 def test_the_end_crop_keeps_the_most_heads_of_a_group(monkeypatch):
     """Five people side by side (YOLOX's boxes given: the detector itself runs in the real
     photo tests): zooming in, the end crop keeps four heads (no crop of its size keeps five),
     where it kept only the dominant one's, cutting a neighbour's face for a smaller move."""
-    from kbbatch.planners.auto import HEAD_HEIGHT, box_point, keeps
+    from kbbatch.planners.auto import head_of, keeps
     from kbbatch.segment import Detection
 
     boxes = [(x - 90.0, 30.0, x + 90.0, 530.0) for x in (100, 300, 700, 900)]
@@ -134,11 +135,17 @@ def test_the_end_crop_keeps_the_most_heads_of_a_group(monkeypatch):
     people = [Detection("person", 0.9, box) for box in boxes]
     people.append(Detection("person", 0.9, (20.0, 500.0, 60.0, 560.0)))  # far too small
     monkeypatch.setattr("kbbatch.segment.detect", lambda image: people)
-    plan = get_planner("auto").plan(request_for(1024, 576, "slideshow",
-                                                disparity=np.full((576, 1024), 8.0, np.float32)))
-    heads = [box_point(box, HEAD_HEIGHT) for box in boxes]
+    request = request_for(1024, 576, "slideshow", disparity=np.full((576, 1024), 8.0, np.float32))
+    plan = get_planner("auto").plan(request)
+    heads = [head_of(request, person) for person in people[:5]]
     assert keeps(plan.end, heads[-1])
     assert sum(keeps(plan.end, head) for head in heads) == 4, plan.end
+    # A vertical end crop two heads apart would keep the middle one's centre, not its face.
+    plan = get_planner("auto").plan(request_for(1024, 576, "social",
+                                                disparity=np.full((576, 1024), 8.0, np.float32)))
+    face = heads[-1].half_width_px
+    assert face == pytest.approx(220 / 6)
+    assert plan.end.left_px <= 500 - face and plan.end.right_px >= 500 + face, plan.end
 
 
 def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
