@@ -897,3 +897,30 @@ def test_the_ramp_prior_runs_no_network_to_frame_a_subject(monkeypatch):
         plan_photo(request.image, DepthResult(disparity, backend, "test"), request.depth,
                    request.preset, "auto")
         assert asked == expected, backend
+
+
+def test_a_depth_cache_hit_frames_without_running_isnet_again(monkeypatch):
+    """Rendering a folder with a second preset (social after slideshow) ran ISNet again for
+    every photo the new shape frames; its map now comes from the depth cache: the same plan."""
+    from kbbatch import segment
+    from kbbatch.images import read_image
+    from kbbatch.pipeline import plan_photo, working_depth
+
+    from .test_crowds import real_models_or_skip
+
+    real_models_or_skip(monkeypatch)
+    [path] = [p for p in shared_photos(1)[0].parent.glob("20_*lantern*")] or [None]
+    if path is None:
+        pytest.skip("photo 20 (the lantern) not found in ../shared/photos")
+    runs: list = []
+    real_salient_mask = segment.salient_mask
+    monkeypatch.setattr(segment, "salient_mask",
+                        lambda image: runs.append(1) or real_salient_mask(image))
+    photo = read_image(path)
+    plans = []
+    for _ in range(2):
+        working, depth_result, depth = working_depth(photo, path, ClipOptions())
+        plans.append(plan_photo(working, depth_result, depth, load_preset("social"), "auto"))
+    assert len(runs) == 1, f"ISNet ran {len(runs)} times"
+    assert plans[0] == plans[1]
+    assert plans[0].start.center_x_px != pytest.approx(depth.shape[1] / 2)  # it was framed

@@ -54,6 +54,17 @@ class SceneContext:
     def __init__(self, image: np.ndarray) -> None:
         self.image = image
 
+    @classmethod
+    def known(cls, image: np.ndarray, saliency: np.ndarray) -> SceneContext:
+        """A context whose salient map is already known (read from the depth cache)."""
+        context = cls(image)
+        context.__dict__["saliency"] = saliency  # where functools.cached_property keeps it
+        return context
+
+    def known_saliency(self) -> np.ndarray | None:
+        """The salient map if it has been worked out, without working it out."""
+        return self.__dict__.get("saliency")
+
     @functools.cached_property
     def instances(self) -> list:
         from kbbatch.segment import find_instances
