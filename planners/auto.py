@@ -59,10 +59,15 @@ HEAD_HALF_WIDTH_FRACTION = 1 / 6
 crop keeps the whole of it, not its centre alone (a vertical end crop kept a man's head
 centre and cut his face in half)."""
 
+PERSON_FIRST_FRACTION = 0.1
+"""A person is the subject beside a larger animal or vehicle, down to this share of its box's
+area: the minibus behind two men (Ultralytics' sample photo) placed the vertical end crop's
+edge through one man's face; a man with his dog and a grazing horse framed the horse."""
+
 GROUP_AREA_FRACTION = 0.3
-"""Objects whose box has at least this share of the dominant one's area are its group: of
-end crops that keep the dominant head, those keeping the most of the group's heads are
-searched (zooming in on five people standing side by side, the end crop cut one's eyes
+"""Objects of the dominant one's class whose box has at least this share of its area are its
+group: of end crops that keep the dominant head, those keeping the most of the group's heads
+are searched (zooming in on five people standing side by side, the end crop cut one's eyes
 and another's face for less disocclusion)."""
 
 ANIMAL_CLASSES = ("bird", "cat", "dog", "horse", "sheep", "cow", "elephant", "bear", "zebra",
@@ -300,8 +305,10 @@ def search_offsets(max_shift_px: float) -> np.ndarray:
 
 
 def salient_objects(request: PlanRequest) -> list[Detection]:
-    """The confident salient objects, the dominant (largest) one first, then those of at
-    least GROUP_AREA_FRACTION of its area: the group whose heads the end crop keeps."""
+    """The dominant salient object first (the largest confident person, unless it is under
+    PERSON_FIRST_FRACTION of the largest object's area; else the largest object), then the
+    others of its class with at least GROUP_AREA_FRACTION of its area: the group whose heads
+    the end crop keeps."""
     from kbbatch.segment import detect
 
     def area(d: Detection) -> float:
@@ -311,7 +318,14 @@ def salient_objects(request: PlanRequest) -> list[Detection]:
         d for d in detect(request.image)
         if d.class_name in paper.SALIENT_CLASSES and d.score >= paper.SALIENT_SCORE_MIN
     ), key=area, reverse=True)
-    return [d for d in found if area(d) >= GROUP_AREA_FRACTION * area(found[0])]
+    if not found:
+        return []
+    people = [d for d in found if d.class_name == "person"]
+    first = found[0]
+    if people and area(people[0]) >= PERSON_FIRST_FRACTION * area(first):
+        first = people[0]
+    return [first] + [d for d in found if d is not first and d.class_name == first.class_name
+                      and area(d) >= GROUP_AREA_FRACTION * area(first)]
 
 
 def head_of(request: PlanRequest, found: Detection) -> Head:

@@ -148,6 +148,22 @@ def test_the_end_crop_keeps_the_most_heads_of_a_group(monkeypatch):
     assert plan.end.left_px <= 500 - face and plan.end.right_px >= 500 + face, plan.end
 
 
+def test_people_are_the_subject_beside_a_larger_vehicle(monkeypatch):
+    """Two men in front of a minibus (Ultralytics' sample photo): framed by the bus, the largest
+    box, the vertical end crop's edge went through one man's face."""
+    from kbbatch.planners.auto import head_of, keeps
+    from kbbatch.segment import Detection
+
+    bus = Detection("bus", 0.9, (100.0, 100.0, 900.0, 500.0))
+    men = [Detection("person", 0.9, (150.0, 150.0, 300.0, 560.0)),
+           Detection("person", 0.8, (320.0, 160.0, 450.0, 560.0))]
+    monkeypatch.setattr("kbbatch.segment.detect", lambda image: [bus, *men])
+    request = request_for(1024, 576, "social", disparity=np.full((576, 1024), 8.0, np.float32))
+    plan = get_planner("auto").plan(request)
+    for man in men:
+        assert keeps(plan.end, head_of(request, man)), plan.end
+
+
 def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
     """A 16:9 clip of a 16:9 photo (or a 3:2 one): placed as before, and ISNet is not run for
     it after a depth cache hit."""
