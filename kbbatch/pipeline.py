@@ -9,6 +9,7 @@ them is imported here.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -280,8 +281,8 @@ def prepare_scene(
 def plan_photo(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray,
                preset: Preset, planner: str) -> Plan:
     """The named planner's plan; ISNet's map, if the planner asks for it, is the one the depth
-    stage worked out (kept in the depth cache; worked out now after a hit on an entry without
-    it). With the ramp prior, chosen to run no network, there is none."""
+    stage worked out or the depth cache kept (else worked out now, and kept). With the ramp
+    prior, chosen to run no network, there is none."""
     if depth_result.backend == "ramp":
         return get_planner(planner).plan(PlanRequest(working, depth, preset))
     context = depth_result.segmentation or SceneContext(working)
@@ -306,25 +307,21 @@ def cached_disparity(working: np.ndarray, photo_path: Path | None, options: Clip
     from kbbatch.fingerprint import depth_inputs, file_sha256
 
     if photo_path is None or not options.cache_depth:
-        return as_cached(working, estimate_disparity(working, photo_path, options.depth))
+        return estimate_disparity(working, photo_path, options.depth)
     key = depth_inputs(photo_path, content or file_sha256(photo_path), options.depth).digest(
         working.shape[:2])
+    # ISNet's map, when the planner works it out after the entry is written, joins the entry
+    keep_saliency = functools.partial(depth_cache.add_saliency, key)
     cached = depth_cache.load(key, working)
     if cached is not None and cached.disparity.shape == working.shape[:2]:
-        return cached
+        if cached.segmentation is not None:
+            return cached
+        return replace(cached, segmentation=SceneContext(working, keep_saliency))
     result = estimate_disparity(working, photo_path, options.depth)
     depth_cache.store(key, result)
-    return as_cached(working, result)
-
-
-def as_cached(working: np.ndarray, result: DepthResult) -> DepthResult:
-    """The result as a run that hits the depth cache reads it: ISNet's map at the levels the
-    cache keeps, so the planner makes the same plans with the cache, without it, or before."""
-    saliency = result.segmentation.known_saliency() if result.segmentation else None
-    if saliency is None:
-        return result
-    return replace(result, segmentation=SceneContext.known(
-        working, depth_cache.stored_saliency(saliency)))
+    if result.segmentation is not None and result.segmentation.known_saliency() is None:
+        result.segmentation.on_saliency = keep_saliency
+    return result
 
 
 def frame_view(prepared: PreparedScene, preset: Preset, t: float) -> View:

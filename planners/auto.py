@@ -181,7 +181,7 @@ def crop_margins(width: float, height: float) -> tuple[float, float]:
 def framing_mask(request: PlanRequest) -> np.ndarray | None:
     """What ISNet holds salient, at the depth's size, where the widest crop shows at most
     FRAMING_FREE_FRACTION of the photo's width or height (elsewhere framing has no freedom,
-    and ISNet is not run again after a depth cache hit for it) and the map is there."""
+    and ISNet is not run for it) and the map is there."""
     height, width = request.depth.shape
     wide = aspect_crop(request)
     if min(wide.width_px / width, wide.height_px / height) > FRAMING_FREE_FRACTION:
@@ -356,9 +356,11 @@ def box_point(box: tuple[float, float, float, float], height_fraction: float
     return (x0 + x1) / 2, y0 + height_fraction * (y1 - y0)
 
 
-def keeps(crop: Crop, head: Head) -> bool:
-    """Whether a crop shows a head whole, with a margin around it."""
-    margin_x = max(HEAD_MARGIN_FRACTION * crop.width_px, head.half_width_px)
+def keeps(crop: Crop, head: Head, whole: bool = True) -> bool:
+    """Whether a crop shows a head whole (else its centre), with a margin around it."""
+    margin_x = HEAD_MARGIN_FRACTION * crop.width_px
+    if whole:
+        margin_x = max(margin_x, head.half_width_px)
     margin_y = HEAD_MARGIN_FRACTION * crop.height_px
     return (crop.left_px + margin_x <= head.x_px <= crop.right_px - margin_x
             and crop.top_px + margin_y <= head.y_px <= crop.bottom_px - margin_y)
@@ -438,8 +440,11 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
             score += MOTION_WEIGHT * max(0.0, 1.0 - shift / MIN_VISIBLE_SHIFT_FRACTION)
         candidates.append(Candidate(crop, disoccluded, score))
     if head is not None and candidates:
-        def kept(c: Candidate) -> tuple[bool, int]:
-            return keeps(c.crop, head), sum(keeps(c.crop, h) for h in heads)
+        def kept(c: Candidate) -> tuple[bool, bool, int]:
+            """The subject's head whole, else its centre (a head wider than any crop: a
+            close-up, a ship), then the most of its group's."""
+            return (keeps(c.crop, head), keeps(c.crop, head, whole=False),
+                    sum(keeps(c.crop, h) for h in heads))
 
         most = max(kept(c) for c in candidates)
         candidates = [c for c in candidates if kept(c) == most]

@@ -154,9 +154,13 @@ def test_an_entry_keeps_isnets_map_for_the_planner():
     depth_cache.store(key(1), stored)
     depth_cache.store(key(2), result(2.0))  # no map worked out: none kept
     loaded = depth_cache.load(key(1), image).segmentation.known_saliency()
-    assert np.array_equal(loaded, depth_cache.stored_saliency(saliency))
     assert np.abs(loaded - saliency).max() <= 0.5 / depth_cache.SALIENCY_LEVELS + 1e-7
+    assert np.array_equal(loaded >= 0.5, saliency >= 0.5)  # the planner's threshold
     assert depth_cache.load(key(2), image).segmentation is None
+    depth_cache.add_saliency(key(2), saliency)  # worked out later, by the planner
+    assert np.allclose(depth_cache.load(key(2), image).segmentation.known_saliency(),
+                       loaded)
+    assert depth_cache.load(key(2)).disparity[0, 0] == 2.0
     assert depth_cache.load(key(1)).segmentation is None  # no photo to tie it to
     other_size = np.zeros((SIDE_PX // 2, SIDE_PX, 3), np.uint8)
     assert depth_cache.load(key(1), other_size).segmentation is None

@@ -91,7 +91,7 @@ def test_a_subject_taller_than_the_crop_is_framed_from_its_top():
     bottle = np.zeros((1024, 576), np.float32)
     bottle[150:200, 270:282] = 0.9  # the neck
     bottle[200:800, 200:350] = 0.9
-    bottle[1000:1004, 500:504] = 0.9  # a speck far below: no part of the subject's extent
+    bottle[20:24, 500:504] = 0.9  # a speck above it: no part of the subject's extent
     plan = get_planner("auto").plan(subject_request("slideshow", bottle))
     for crop in (plan.start, plan.end):
         assert crop.top_px + 0.05 * crop.height_px <= 150, crop
@@ -162,6 +162,13 @@ def test_people_are_the_subject_beside_a_larger_vehicle(monkeypatch):
     plan = get_planner("auto").plan(request)
     for man in men:
         assert keeps(plan.end, head_of(request, man)), plan.end
+    # A man far smaller than a ship beside him (under a tenth of its box) is not its subject.
+    ship = Detection("boat", 0.9, (0.0, 50.0, 1024.0, 576.0))
+    speck = Detection("person", 0.9, (800.0, 400.0, 830.0, 470.0))
+    monkeypatch.setattr("kbbatch.segment.detect", lambda image: [ship, speck])
+    plan = get_planner("auto").plan(request)
+    assert keeps(plan.end, head_of(request, ship), whole=False)  # wider than any crop
+    assert not keeps(plan.end, head_of(request, speck))
 
 
 def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
@@ -915,9 +922,12 @@ def test_the_ramp_prior_runs_no_network_to_frame_a_subject(monkeypatch):
         assert asked == expected, backend
 
 
-def test_a_depth_cache_hit_frames_without_running_isnet_again(monkeypatch):
+@pytest.mark.parametrize("depth_file", [False, True])
+def test_a_depth_cache_hit_frames_without_running_isnet_again(monkeypatch, tmp_path, depth_file):
     """Rendering a folder with a second preset (social after slideshow) ran ISNet again for
-    every photo the new shape frames; its map now comes from the depth cache: the same plan."""
+    every photo the new shape frames; its map now comes from the depth cache: the same plan.
+    Also where the depth stage ran no ISNet (a depth map beside the photo, no object found):
+    the planner's map joins the entry."""
     from kbbatch import segment
     from kbbatch.images import read_image
     from kbbatch.pipeline import plan_photo, working_depth
@@ -928,6 +938,13 @@ def test_a_depth_cache_hit_frames_without_running_isnet_again(monkeypatch):
     [path] = [p for p in shared_photos(1)[0].parent.glob("20_*lantern*")] or [None]
     if path is None:
         pytest.skip("photo 20 (the lantern) not found in ../shared/photos")
+    if depth_file:  # a copy of the photo with a user's depth map beside it
+        photo_copy = tmp_path / path.name
+        shutil.copyfile(path, photo_copy)
+        width, height = Image.open(path).size
+        ramp = np.linspace(1.0, 2.0, height, dtype=np.float32)[:, None].repeat(width, 1)
+        np.save(tmp_path / f"{path.stem}.depth.npy", ramp)
+        path = photo_copy
     runs: list = []
     real_salient_mask = segment.salient_mask
     monkeypatch.setattr(segment, "salient_mask",
@@ -936,6 +953,7 @@ def test_a_depth_cache_hit_frames_without_running_isnet_again(monkeypatch):
     plans = []
     for _ in range(2):
         working, depth_result, depth = working_depth(photo, path, ClipOptions())
+        assert depth_result.backend == ("file" if depth_file else "popup")
         plans.append(plan_photo(working, depth_result, depth, load_preset("social"), "auto"))
     assert len(runs) == 1, f"ISNet ran {len(runs)} times"
     assert plans[0] == plans[1]

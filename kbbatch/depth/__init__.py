@@ -31,8 +31,8 @@ class DepthResult:
     backend: str
     source: str  # what it came from: a file path, a model, a description
     segmentation: SceneContext | None = field(default=None, compare=False, repr=False)
-    """What the stage worked out of the photo's objects, for the planner to reuse (not kept
-    in the depth cache)."""
+    """What the stage worked out of the photo's objects, for the planner to reuse (its salient
+    map is kept in the depth cache)."""
 
 
 @dataclass(frozen=True)
@@ -51,8 +51,10 @@ class SceneContext:
     would keep every photo's image and masks alive for the life of a daemon.
     """
 
-    def __init__(self, image: np.ndarray) -> None:
+    def __init__(self, image: np.ndarray,
+                 on_saliency: Callable[[np.ndarray], None] | None = None) -> None:
         self.image = image
+        self.on_saliency = on_saliency  # told the map once it is worked out (the depth cache)
 
     @classmethod
     def known(cls, image: np.ndarray, saliency: np.ndarray) -> SceneContext:
@@ -75,7 +77,10 @@ class SceneContext:
     def saliency(self) -> np.ndarray | None:
         from kbbatch.segment import salient_mask
 
-        return salient_mask(self.image)
+        saliency = salient_mask(self.image)
+        if saliency is not None and self.on_saliency is not None:
+            self.on_saliency(saliency)
+        return saliency
 
 
 class DepthBackend(Protocol):

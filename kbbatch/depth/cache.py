@@ -49,13 +49,8 @@ def cache_dir() -> Path:
 SALIENCY_LEVELS = 65535
 """ISNet's map is kept as 16-bit levels (half the size of float32): the planner frames photos
 on it, and without it a cache hit ran ISNet again (1.7 s) for every photo a vertical or
-square preset frames."""
-
-
-def stored_saliency(saliency: np.ndarray) -> np.ndarray:
-    """The map as an entry keeps it: what a run that hits the cache sees, so a run that misses
-    gives the planner the same."""
-    return _saliency_from_levels(_saliency_levels(saliency))
+square preset frames. Its threshold, one half, lies halfway between two levels: a pixel is
+salient or not alike in the map and its levels, so a hit plans as a miss does."""
 
 
 def _saliency_levels(saliency: np.ndarray) -> np.ndarray:
@@ -75,9 +70,9 @@ def load(key: str, image: np.ndarray | None = None) -> DepthResult | None:
         with np.load(path, allow_pickle=False) as data:
             context = None
             if image is not None and "saliency" in data.files:
-                saliency = _saliency_from_levels(data["saliency"])
-                if saliency.shape == image.shape[:2]:
-                    context = SceneContext.known(image, saliency)
+                levels = data["saliency"]
+                if levels.dtype == np.uint16 and levels.shape == image.shape[:2]:
+                    context = SceneContext.known(image, _saliency_from_levels(levels))
             result = DepthResult(data["disparity"], str(data["backend"]),
                                  str(data["source"]), context)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
@@ -89,14 +84,11 @@ def load(key: str, image: np.ndarray | None = None) -> DepthResult | None:
 
 def store(key: str, result: DepthResult) -> None:
     path = cache_dir() / f"{key}.npz"
-    try:
-        saliency = result.segmentation.known_saliency() if result.segmentation else None
-        extra = {} if saliency is None else {"saliency": _saliency_levels(saliency)}
-        with atomic_output(path, ".npz") as temp_path, temp_path.open("wb") as handle:
-            np.savez(handle, disparity=result.disparity, backend=result.backend,
-                     source=result.source, **extra)
-    except OSError as error:  # a cache that cannot be written only costs time: said once
-        _say_unwritable(str(cache_dir()), error.strerror or str(error))
+    arrays = {"disparity": result.disparity, "backend": result.backend, "source": result.source}
+    saliency = result.segmentation.known_saliency() if result.segmentation else None
+    if saliency is not None:
+        arrays["saliency"] = _saliency_levels(saliency)
+    if not _write(path, arrays):
         return
     try:
         max_bytes = cache_max_bytes()
@@ -104,6 +96,31 @@ def store(key: str, result: DepthResult) -> None:
         _say_bad_setting(str(error))
         max_bytes = CACHE_MAX_MB_DEFAULT * 2**20
     evict(max_bytes, keep=path)
+
+
+def add_saliency(key: str, saliency: np.ndarray) -> None:
+    """Keep in the entry a map worked out after it was written (the depth stage found no object
+    to run ISNet for, or read a depth map; the planner then framed the photo on ISNet's map),
+    so the next run reads it instead of running ISNet again."""
+    path = cache_dir() / f"{key}.npz"
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+        return  # evicted or damaged meanwhile: written whole by the next run
+    arrays["saliency"] = _saliency_levels(saliency)
+    _write(path, arrays)
+
+
+def _write(path: Path, arrays: dict) -> bool:
+    """Write an entry atomically; False (said once) where the cache cannot be written."""
+    try:
+        with atomic_output(path, ".npz") as temp_path, temp_path.open("wb") as handle:
+            np.savez(handle, **arrays)
+    except OSError as error:  # a cache that cannot be written only costs time: said once
+        _say_unwritable(str(cache_dir()), error.strerror or str(error))
+        return False
+    return True
 
 
 @functools.cache
