@@ -48,6 +48,20 @@ def test_past_its_bound_the_least_recently_used_entries_go(monkeypatch):
         assert depth_cache.load(key(index)).disparity[0, 0] == index
 
 
+def test_a_map_added_to_an_entry_keeps_the_folder_in_its_bound(monkeypatch):
+    monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "0.8")  # three entries, not with a map
+    for index in range(3):
+        depth_cache.store(key(index), result(index))
+        time.sleep(TICK_S)
+    depth_cache.add_saliency(key(1), np.full((SIDE_PX, SIDE_PX), 0.7, np.float32))
+    assert present() == {1, 2}, "the least recently used entry (0) should have gone"
+    total = sum(path.stat().st_size for path in depth_cache.cache_dir().glob("*.npz"))
+    assert total <= 0.8 * 2**20
+    image = np.zeros((SIDE_PX, SIDE_PX, 3), np.uint8)
+    assert depth_cache.load(key(1), image).segmentation.known_saliency()[0, 0] == (
+        pytest.approx(0.7, abs=1e-4))
+
+
 def test_an_entry_larger_than_the_bound_is_still_kept(monkeypatch):
     monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "0.1")
     depth_cache.store(key(1), result(1))

@@ -88,14 +88,8 @@ def store(key: str, result: DepthResult) -> None:
     saliency = result.segmentation.known_saliency() if result.segmentation else None
     if saliency is not None:
         arrays["saliency"] = _saliency_levels(saliency)
-    if not _write(path, arrays):
-        return
-    try:
-        max_bytes = cache_max_bytes()
-    except CacheSettingError as error:  # the commands refuse it at start; a library caller
-        _say_bad_setting(str(error))
-        max_bytes = CACHE_MAX_MB_DEFAULT * 2**20
-    evict(max_bytes, keep=path)
+    if _write(path, arrays):
+        _bound(path)
 
 
 def add_saliency(key: str, saliency: np.ndarray) -> None:
@@ -109,7 +103,18 @@ def add_saliency(key: str, saliency: np.ndarray) -> None:
     except (OSError, ValueError, EOFError, zipfile.BadZipFile):
         return  # evicted or damaged meanwhile: written whole by the next run
     arrays["saliency"] = _saliency_levels(saliency)
-    _write(path, arrays)
+    if _write(path, arrays):
+        _bound(path)  # the entry grew
+
+
+def _bound(written: Path) -> None:
+    """Evict down to the bound, keeping the entry just written."""
+    try:
+        max_bytes = cache_max_bytes()
+    except CacheSettingError as error:  # the commands refuse it at start; a library caller
+        _say_bad_setting(str(error))
+        max_bytes = CACHE_MAX_MB_DEFAULT * 2**20
+    evict(max_bytes, keep=written)
 
 
 def _write(path: Path, arrays: dict) -> bool:
