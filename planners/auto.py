@@ -419,7 +419,8 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
     subject = Subject.of(request) if use_saliency and found is None else None
     wide, tight = wide_and_tight(request, head, subject)
     coarse = CoarseScene.of(request.depth)
-    target = box_point(found.box, SALIENT_TARGET_HEIGHT) if found else None
+    # leaning toward the subject's upper part, below its head (a walrus's, not its back's)
+    target = (head.x_px, box_point(found.box, SALIENT_TARGET_HEIGHT)[1]) if found else None
     # Every candidate shares the wide crop, hence the output window.
     region = coarse.region(wide, tight)
     searched = []

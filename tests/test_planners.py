@@ -105,7 +105,7 @@ def test_a_subject_taller_than_the_crop_is_framed_from_its_top():
     assert plan.start.center_y_px == pytest.approx(512)
 
 
-def test_an_animal_head_is_the_highest_point_of_its_outline():
+def test_an_animal_head_is_the_highest_point_of_its_outline(monkeypatch):
     """A walrus lying on a beach holds its head up at one end of its box: the box's top
     centre is its back. A person's head stays the box's top centre (raised arms are higher)."""
     from kbbatch.planners.auto import head_of
@@ -121,6 +121,10 @@ def test_an_animal_head_is_the_highest_point_of_its_outline():
     assert 560 <= head.x_px <= 680 and 220 <= head.y_px <= 300
     assert head.half_width_px == pytest.approx(60)
     assert head_of(social, Detection("person", 0.9, box)).x_px == pytest.approx(400)
+    # The camera leans toward it too, not toward the box's centre (the walrus's back).
+    monkeypatch.setattr("kbbatch.segment.detect", lambda image: [Detection("dog", 0.9, box)])
+    plan = get_planner("auto").plan(social)
+    assert abs(plan.end.center_x_px - head.x_px) < 20, plan.end  # leaning to the box: 60 px off
 
 
 def test_the_end_crop_keeps_the_most_heads_of_a_group(monkeypatch):
