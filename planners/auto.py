@@ -447,8 +447,9 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
             return (keeps(c.crop, head), keeps(c.crop, head, whole=False),
                     sum(keeps(c.crop, h) for h in heads))
 
-        most = max(kept(c) for c in candidates)
-        candidates = [c for c in candidates if kept(c) == most]
+        ranks = [kept(c) for c in candidates]
+        most = max(ranks)
+        candidates = [c for c, rank in zip(candidates, ranks, strict=True) if rank == most]
     elif subject is not None:
         framed = []
         if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from

@@ -1,5 +1,5 @@
-"""On-disk cache of final depth maps (and ISNet's map, when the depth stage worked it out), so
-re-runs and the daemon never recompute them.
+"""On-disk cache of final depth maps (and ISNet's map, once the depth stage or the planner
+worked it out), so re-runs and the daemon never recompute them.
 
 The key is the digest of the depth stage's inputs (kbbatch.fingerprint: photo and depth-file
 bytes, the networks present, the options, the depth code) and the working size. Files are
@@ -29,8 +29,8 @@ CACHE_ENV = "KBBATCH_CACHE"
 CACHE_MAX_ENV = "KBBATCH_CACHE_MAX_MB"
 CACHE_MAX_MB_DEFAULT = 2048
 """The folder's bound in MB unless $KBBATCH_CACHE_MAX_MB says otherwise. An entry is float32
-disparity at the working size (long side 1024 px) and ISNet's map at 16-bit levels when the
-depth stage ran it: 4.5 MB for a 4579x3271 photo, at most 6.3 MB, so the default holds about
+disparity at the working size (long side 1024 px) and ISNet's map at 16-bit levels where
+ISNet ran: 4.5 MB for a 4579x3271 photo, at most 6.3 MB, so the default holds about
 450 photos."""
 
 ENTRY_PATTERN = re.compile(r"[0-9a-f]{32}\.npz")
@@ -59,7 +59,7 @@ def _saliency_levels(saliency: np.ndarray) -> np.ndarray:
 
 
 def _saliency_from_levels(levels: np.ndarray) -> np.ndarray:
-    return (levels.astype(np.float32) / SALIENCY_LEVELS).astype(np.float32)
+    return levels.astype(np.float32) / np.float32(SALIENCY_LEVELS)
 
 
 def load(key: str, image: np.ndarray | None = None) -> DepthResult | None:
