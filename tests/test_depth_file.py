@@ -242,3 +242,22 @@ def test_an_openexr_map_in_a_folder_whose_name_is_not_utf8_is_read(tmp_path):
     result = estimate_disparity(textured_image(40, 60), folder / "scene.jpg")
     assert result.backend == "file"
     assert result.disparity[20, 30] == pytest.approx(4 * result.disparity[2, 2], rel=1e-3)
+
+
+def test_a_map_smaller_than_the_photo_is_refined_onto_its_colour_edges(tmp_path):
+    """A user's map at a quarter of the size (a phone's depth, a network run elsewhere) was
+    enlarged bilinearly: every edge a ramp of depths between object and background, off the
+    object's real outline, that the move smeared into faint copies of the edge."""
+    height, width = 240, 360
+    image = textured_image(height, width, seed=2) // 4 + 20
+    image[:, 181:] += 150  # an object right of column 181 (not on the map's grid)
+    depth = np.where(np.arange(width) > 180, 1000, 5000).astype(np.uint16)[None]
+    depth = cv2.resize(depth.repeat(height, 0), (width // 4, height // 4),
+                       interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(tmp_path / "a.depth.png"), depth)
+    (tmp_path / "a.jpg").write_bytes(b"unused")
+    row = estimate_disparity(image, tmp_path / "a.jpg").disparity[height // 2]
+    near, far = row.max(), row.min()
+    assert near == pytest.approx(1 / 1000, rel=0.05) and far == pytest.approx(1 / 5000, rel=0.05)
+    assert int(np.argmax(row > 0.5 * (near + far))) == 181
+    assert not ((row > far * 1.01) & (row < near * 0.99)).any(), "no depth between the sides"

@@ -93,6 +93,33 @@ def test_refinement_keeps_a_step_edge_sharp_where_bilinear_blurs_it():
     assert np.abs(refined[row] - disparity[row]).max() < 1e-6, "the edge lands on the image edge"
 
 
+def test_refinement_leaves_no_depth_between_the_sides_of_a_step_where_colour_is_unsure():
+    """Where the colour could not tell the sides apart, the smooth upsampling stayed: a ramp of
+    depths between object and background, which drifted apart from both as the camera moved
+    (an object's soft edge left floating beside it as faint rings)."""
+    import cv2
+
+    image = np.full((H, W, 3), 128, np.uint8)  # no colour edge to follow
+    disparity = np.where(np.arange(W) > 180, 1.0, 0.2).astype(np.float32)[None].repeat(H, 0)
+    coarse = cv2.resize(disparity, (W // 4, H // 4), interpolation=cv2.INTER_AREA)
+    refined = refine(coarse, image)
+    assert edge_width(refined[H // 2], 0.2, 1.0) == 0
+    np.testing.assert_allclose(np.unique(refined), [0.2, 1.0], atol=1e-6)
+    edge = int(np.argmax(refined[H // 2] > 0.6))
+    assert abs(edge - 181) <= 2, "the step stays where the map put it"
+
+
+def test_refinement_keeps_a_steep_slope_smooth():
+    """A slope that changes by more than a tenth within the refinement's window is no step:
+    snapped, it would become stairs (cracks across a floor)."""
+    image = textured_image(H, W, seed=5)
+    slope = np.linspace(0.02, 0.5, W // 4, dtype=np.float32)[None].repeat(H // 4, 0)
+    refined = refine(slope, image)
+    row = refined[H // 2, 8:-8]
+    assert np.abs(np.diff(row)).max() < 0.01, "no stair step"
+    assert (np.diff(row) >= -1e-6).all()
+
+
 def test_refinement_copies_no_texture_into_flat_depth():
     image = textured_image(H, W, seed=4)
     flat = np.full((H // 4, W // 4), 0.5, np.float32)

@@ -236,7 +236,12 @@ def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, wid
     # sensor's shadow, a stereo occlusion) lies beside an object, on the far side.
     disparity[np.isinf(data)] = farthest
     disparity = far_side_fill(disparity, disparity > 0, farthest)
-    return cv2.resize(disparity, (width, height), interpolation=cv2.INTER_LINEAR)
+    if data.shape[0] <= height and data.shape[1] <= width:
+        # Kept at its own size, as a network's map is: the depth stage's refinement brings it
+        # up with its edges on the photo's colour edges. Enlarged here, every edge would be a
+        # ramp of depths between the two sides, which no surface has.
+        return disparity
+    return cv2.resize(disparity, (width, height), interpolation=cv2.INTER_AREA)
 
 
 def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float) -> np.ndarray:

@@ -13,6 +13,8 @@ import math
 import cv2
 import numpy as np
 
+from kbbatch import paper
+
 EDGE_STEP_FRACTION = 0.1
 """A window whose disparity range exceeds this fraction of its largest value holds an edge."""
 
@@ -44,8 +46,22 @@ def refine(disparity: np.ndarray, image: np.ndarray) -> np.ndarray:
 
     near_distance = np.linalg.norm(colour - side_mean(near_side), axis=-1)
     far_distance = np.linalg.norm(colour - side_mean(far_side), axis=-1)
-    snapped = np.where(near_distance < far_distance, nearest, farthest)
-    # Snap only where the colour says clearly which side a pixel is on; elsewhere the smooth
-    # upsampling is the safer guess.
+    by_colour = np.where(near_distance < far_distance, nearest, farthest)
+    by_value = np.where(near_side > 0, nearest, farthest)
+    # The colour decides where it says clearly which side a pixel is on. Elsewhere, across a
+    # step of the map itself, the upsampled value does: no depth between the two sides is
+    # kept there, since such a pixel is no surface and drifts apart from both as the camera
+    # moves (an object's soft edge left floating beside it as faint rings). On a steep slope
+    # the smooth upsampling stays: snapped, it would become steps.
     decisive = np.abs(near_distance - far_distance) > COLOUR_MARGIN_LAB
-    return np.where(edge & decisive, snapped, up).astype(np.float32)
+    step = cv2.resize(_steps(disparity), (width, height), interpolation=cv2.INTER_NEAREST)
+    step = cv2.dilate(step, kernel) > 0
+    snapped = np.where(decisive, by_colour, np.where(step, by_value, up))
+    return np.where(edge, snapped, up).astype(np.float32)
+
+
+def _steps(disparity: np.ndarray) -> np.ndarray:
+    """Pixels of the map on a depth discontinuity, by the paper's Laplacian test."""
+    normalised = (disparity / max(float(disparity.max()), 1e-6)).astype(np.float32)
+    laplacian = cv2.Laplacian(normalised, cv2.CV_32F, ksize=1)
+    return (np.abs(laplacian) >= paper.DEPTH_EDGE_LAPLACIAN).astype(np.uint8)
