@@ -465,9 +465,11 @@ DISK_FULL = "a full output disk"
 
 
 def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
-    """Unfinished jobs of this folder's photos that were deleted since: nothing is left to
-    make of them, and kept queued they showed in `kbbatch status` for ever (Journal.photo_gone).
-    Another folder's jobs are left alone: its card may only be out of the reader."""
+    """Jobs of this folder's photos that were deleted since. Unfinished, nothing is left to
+    make of them, and kept queued they showed in `kbbatch status` for ever (Journal.photo_gone);
+    done, their clips are kept from a different photo saved later under the same name
+    (Journal.done_photo_removed). Another folder's jobs are left alone: its card may only be
+    out of the reader."""
     from kbbatch.journal import folder_key, in_folder
 
     folder = folder_key(folder)
@@ -476,6 +478,10 @@ def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
             source = Path(job.source)
             if in_folder(source, folder) and not os.path.lexists(source):
                 journal.photo_gone(source, output_folder)
+    for job in journal.jobs("done"):
+        source = Path(job.source)
+        if in_folder(source, folder) and not os.path.lexists(source):
+            journal.done_photo_removed(source)
 
 
 def excluded_result(journal, source: Path, output_folder: Path) -> ClipResult:

@@ -50,6 +50,11 @@ def folder_key(folder: Path) -> Path:
     return Path(os.path.realpath(folder))
 
 
+GONE_MARK = " (removed from the inbox)"
+"""Added to the journal's record of a photo deleted from its folder (the inbox, or a batch's)
+after its clip was begun (worded for the inbox, as journals already hold it)."""
+
+
 def in_folder(source: Path, folder: Path) -> bool:
     """Whether a job's photo lies in this folder (its key), also by another spelling: a
     journal of an earlier version kept the folder as typed (through a link)."""
@@ -292,6 +297,19 @@ class Journal:
         self.connection.execute(
             "UPDATE jobs SET state = 'done', settings = '', error = NULL, clip = ?, updated = ?"
             " WHERE source = ?", (source_fingerprint(output), time.time(), _stored(source)))
+
+    @_guarded
+    def done_photo_removed(self, source: Path) -> bool:
+        """A photo whose clip was made is deleted from its folder: its record (and its clip)
+        moves aside under GONE_MARK, so that a different photo saved later under the same name
+        is a photo of its own, with a clip of its own name, not an edit of the deleted one
+        that replaces its clip. (The same bytes put back are still found up to date, by
+        content.) Whether anything was moved aside."""
+        job = self.get(source)
+        if job is None or job.state != "done" or source.name.endswith(GONE_MARK):
+            return False
+        self.moved(source, source.with_name(f"{source.name}{GONE_MARK}"))
+        return True
 
     @_guarded
     def forget(self, source: Path) -> None:

@@ -44,6 +44,7 @@ from kbbatch.images import (
 )
 from kbbatch.journal import (
     DONE_FOLDER,
+    GONE_MARK,
     FolderBusyError,
     FolderLock,
     Journal,
@@ -116,9 +117,6 @@ UNUSABLE_ENTRIES: dict[str, Callable[[Path], str]] = {
     "plan_sheet": lambda path: OLD_PLAN_SHEET_REASON,
 }
 """What the log says, once, of an inbox entry that is no photo to take (images.entry_kind)."""
-
-GONE_MARK = " (removed from the inbox)"
-"""Added to the journal's record of a photo deleted while its clip was made."""
 
 REWRITE_GRACE_S = 10.0
 """A photo that fails while it was modified this recently (at least 5 settle times) is not filed
@@ -415,6 +413,10 @@ class JobRunner:
                 log.info("recovered %s: clip was complete", job.name)
             else:
                 log.info("resuming %s: interrupted before its clip was complete", job.name)
+        for job in self.journal.jobs("done"):
+            source = Path(job.source)
+            if in_folder(source, s.inbox) and not os.path.lexists(source):
+                self.journal.done_photo_removed(source)  # deleted while no daemon ran
 
     def new_pool(self) -> ProcessPoolExecutor | RayClipPool:
         """--jobs worker processes here, or --jobs clips in flight on Ray."""
@@ -598,7 +600,13 @@ class JobRunner:
                          "if it stays unchanged that long", job.path.name, grace)
             else:
                 self.file_failure(job.path, result)
-        removed.intersection_update(job.path for job in self.in_flight.values())
+        in_flight = {job.path for job in self.in_flight.values()}
+        for path in removed - in_flight:
+            if not os.path.lexists(path) and self.journal.done_photo_removed(path):
+                log.info("%s was removed from the inbox; its clip %s stays, and a photo saved "
+                         "later under its name gets a clip of its own", path.name,
+                         self.journal.get(path.with_name(f"{path.name}{GONE_MARK}")).output)
+        removed.intersection_update(in_flight)
 
     def wait_for_space(self, result: ClipResult) -> None:
         """No photo is taken until the disk that was full (the output's, or the temporary

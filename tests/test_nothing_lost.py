@@ -317,6 +317,43 @@ def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):
 
 
 
+def test_a_clip_of_a_deleted_photo_is_kept_from_another_photo_saved_later_under_its_name(
+        tmp_path, quick_preset):
+    """One import folder for every card: IMG_0001.jpg made, deleted, a run, then the next
+    card's IMG_0001.jpg copied in. Taken for an edit of the deleted photo, it replaced its
+    clip, though the run between had seen that photo gone."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    path = photo(folder / "IMG_0001.jpg", seed=1)
+    photo(folder / "IMG_0002.jpg", seed=3)
+    run_folder(folder, out, quick_preset, FAST, False)
+    first_clip = (out / "IMG_0001.mp4").read_bytes()
+    path.unlink()
+    run_folder(folder, out, quick_preset, FAST, False)
+    photo(path, seed=2)  # the next card's photo of that name
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    [result] = [r for r in report.results if r.status != "skipped"]
+    assert result.status == "done" and Path(result.output).name != "IMG_0001.mp4"
+    assert "is another photo's" in result.note and "changed since" not in result.note
+    assert (out / "IMG_0001.mp4").read_bytes() == first_clip
+    assert len(visible_clips(out)) == 3
+
+
+def test_a_deleted_photo_put_back_is_up_to_date(tmp_path, quick_preset):
+    """Its record set aside when a run saw it gone, the photo put back is still known by its
+    bytes: not made again, no second clip."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    path = photo(folder / "a.jpg", seed=1)
+    photo(folder / "b.jpg", seed=2)
+    run_folder(folder, out, quick_preset, FAST, False)
+    kept = path.read_bytes()
+    path.unlink()
+    run_folder(folder, out, quick_preset, FAST, False)
+    path.write_bytes(kept)
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["skipped", "skipped"]
+    assert visible_clips(out) == ["a.mp4", "b.mp4"]
+
+
 def test_an_edited_photo_named_by_its_content_replaces_its_own_clip(tmp_path, quick_preset):
     """A clip once named by content (its name was another card's) keeps that name when its
     photo is edited: the edit replaces it, no second, stale clip beside it."""

@@ -772,6 +772,28 @@ def test_the_same_photo_dropped_again_is_not_made_again(tmp_path):
         [first, first, photo_bytes(tmp_path, 2)])
 
 
+def test_with_keep_sources_a_photo_deleted_and_another_saved_under_its_name_gets_its_own_clip(
+        tmp_path):
+    """--keep-sources, a phone's upload folder: IMG_0001 made, the inbox cleared, the camera's
+    numbering restarted. The new IMG_0001 was taken for an edit of the deleted one and its
+    clip replaced the first one's."""
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset, "--keep-sources")
+    try:
+        drop(inbox, "IMG_0001.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "the first IMG_0001.jpg")
+        first_clip = (outbox / "IMG_0001.mp4").read_bytes()
+        (inbox / "IMG_0001.jpg").unlink()
+        wait_for(lambda: "IMG_0001.jpg was removed from the inbox; its clip IMG_0001.mp4 stays"
+                 in daemon_log(tmp_path), 60, "the removal to be seen")
+        drop(inbox, "IMG_0001.jpg", photo_bytes(tmp_path, 2))
+        wait_for(lambda: len(clips_in(outbox)) == 2, 240, "the second photo's clip")
+    finally:
+        assert stop(daemon) == 0
+    assert (outbox / "IMG_0001.mp4").read_bytes() == first_clip
+    assert "changed since" not in daemon_log(tmp_path)
+
+
 def test_a_photo_saved_over_with_its_size_and_time_kept_is_made_again(tmp_path):
     """A photo saved over while its clip was made, with the same size and time (exiftool -P
     rewriting a tag in place; a fixed-size scan): the daemon filed the new photo in done/
