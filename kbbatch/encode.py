@@ -306,6 +306,28 @@ def probe(path: Path) -> VideoInfo:
                      duration_s=float(meta["duration"]), codec=meta["codec"])
 
 
+def is_cut_short_clip(path: Path, written_size_bytes: int) -> bool:
+    """Whether the file at a clip's name is what is left of the clip kbbatch wrote there, cut
+    short (a copy that stopped, a failing disk): smaller, an MP4 from its first box, and not
+    readable to its end. Anything else at that name (a video the user saved over it, trimmed
+    in an editor; any other file) is the user's, never replaced."""
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as handle:
+            head = handle.read(8)
+    except OSError:
+        return False
+    if size >= written_size_bytes or head[4:8] != b"ftyp":
+        return False
+    command = [ffmpeg_exe(), "-v", "error", "-xerror", "-i", str(path), "-map", "0:v:0",
+               "-c", "copy", "-f", "null", "-"]
+    try:
+        return subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True,
+                              timeout=120).returncode != 0
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+
+
 def decode_frames(path: Path, width_px: int, height_px: int) -> Iterator[np.ndarray]:
     """Every frame of a video as (H, W, 3) uint8 RGB."""
     process = subprocess.Popen(

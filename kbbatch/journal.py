@@ -329,21 +329,22 @@ class Journal:
     def is_up_to_date(self, source: Path, fingerprint: str, settings: tuple[str, ...],
                       output: Path, content: str) -> bool:
         """Done with this photo's bytes and one of these settings' digests, and the clip is
-        the very file then written (a truncated or replaced clip has another size or time).
+        the file then written (of its size: a clip touched, or copied without its time, is
+        still up to date; a truncated or replaced one is not).
 
         The bytes are told by their sha256 (by size and time for a job of a version that kept
         no sha256): a folder copied without its times, or a photo dropped in the daemon's
         inbox again once its clip was made (the job is then another path's, in done/), has
         nothing new to make; a photo edited with its time kept (exiftool -P) has."""
         try:
-            clip = source_fingerprint(output)
+            size = output.stat().st_size
         except OSError:
             return False
         own = self.get(source)
         jobs = ([own] if own is not None else []) + self._select("WHERE content = ?", (content,))
         return any(
             job.state == "done" and job.output == output.name and job.settings in settings
-            and job.clip == clip
+            and clip_size(job.clip) == size
             and (job.content == content if job.content is not None
                  else job is own and job.fingerprint == fingerprint)
             for job in jobs)
@@ -398,11 +399,30 @@ class Journal:
         latest = owners[-1] if owners else None
         if latest is not None and (latest.source == str(source) or latest.content == content
                                    or latest.source == Path(source).name):
-            return True  # this photo's own clip (re-rendered, the folder moved, or a journal
-            # of an earlier version, which keyed jobs by file name)
+            # this photo's own clip (re-rendered, the folder moved, or a journal of an earlier
+            # version, which keyed jobs by file name), unless another file was saved over it
+            return not _saved_over(folder / name, latest.clip)
         if any(os.path.lexists(folder / file) for file in (name, *companions)):
             return False  # another photo's clip or maps, or a file kbbatch did not write
         return latest is None or latest.state != "running"
+
+
+def clip_size(clip: str | None) -> int | None:
+    """The size a clip had when written, from its fingerprint (source_fingerprint)."""
+    return int(clip.split(":", 1)[0]) if clip else None
+
+
+def _saved_over(path: Path, clip: str | None) -> bool:
+    """A file other than the clip kbbatch wrote at its name (of another size, and not that
+    clip cut short): the user's, e.g. the clip trimmed in an editor and saved in place."""
+    from kbbatch.encode import is_cut_short_clip
+
+    written = clip_size(clip)
+    try:
+        size = path.stat().st_size
+    except OSError:
+        return False
+    return written is not None and size != written and not is_cut_short_clip(path, written)
 
 
 class FolderBusyError(RuntimeError):

@@ -987,6 +987,48 @@ def test_a_truncated_clip_is_not_up_to_date(tmp_path, quick_preset):
     assert clip.stat().st_size == len(whole)
 
 
+@pytest.mark.parametrize("saved", ["trimmed video", "other file"])
+def test_a_file_the_user_saved_over_a_clip_is_never_replaced(tmp_path, quick_preset, saved):
+    """The clip trimmed in an editor and saved in place (or any file saved at its name): taken
+    for a clip changed since kbbatch wrote it, it was rendered over on the next run."""
+    import subprocess
+
+    from kbbatch.encode import ffmpeg_exe
+
+    path = photo(tmp_path / "in" / "a.jpg", seed=1)
+    out = tmp_path / "out"
+    run_folder(tmp_path / "in", out, quick_preset, FAST, False)
+    clip = out / "a.mp4"
+    if saved == "trimmed video":
+        trimmed = tmp_path / "trimmed.mp4"
+        subprocess.run([ffmpeg_exe(), "-v", "error", "-i", str(clip), "-t", "0.5", "-c:v",
+                        "libx264", str(trimmed)], check=True)
+        clip.write_bytes(trimmed.read_bytes())
+    else:
+        clip.write_text("the user's notes")
+    users = clip.read_bytes()
+    report = run_folder(tmp_path / "in", out, quick_preset, FAST, False)
+    [result] = report.results
+    assert result.status == "done" and Path(result.output).name.startswith("a.")
+    assert Path(result.output).name != "a.mp4" and "did not write" in result.note
+    photo(path, seed=2)  # and an edit of the photo replaces its clip, not the user's file
+    edited = run_folder(tmp_path / "in", out, quick_preset, FAST, False)
+    assert [r.output for r in edited.results] == [result.output]
+    assert clip.read_bytes() == users
+    assert len(visible_clips(out)) == 2
+
+
+def test_a_clip_touched_or_copied_without_its_time_is_up_to_date(tmp_path, quick_preset):
+    """A clip was up to date only with the time it was written: `touch`, or an output folder
+    copied without times (`cp -r`), made every clip again."""
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    clip = tmp_path / "out" / "a.mp4"
+    os.utime(clip, (clip.stat().st_atime + 100, clip.stat().st_mtime + 100))
+    report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
+    assert [r.status for r in report.results] == ["skipped"]
+
+
 def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     folder = tmp_path / "in"
     photo(folder / "a.jpg", seed=1)
