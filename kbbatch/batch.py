@@ -410,7 +410,9 @@ def run_folder(
             if isinstance(job, ClipResult):  # skipped, or failed before it could start
                 results.append(_as_made_before(job, made_before))
                 bar.update()
-                if fail_fast and job.status == "failed":
+                if job.status == "no_space":
+                    stop["by"] = DISK_FULL
+                if (fail_fast and job.status == "failed") or job.status == "no_space":
                     return
                 continue
             yield job
@@ -522,7 +524,9 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
             return ClipResult(str(source), str(output), "skipped", 0.0)
         journal.start(source, fingerprint, settings[0], name, content)
     except JournalError as error:
-        return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {error}")
+        # a full disk: not the photo's fault, and the photos after it would fail too
+        return ClipResult(str(source), None, "no_space" if error.disk_full else "failed", 0.0,
+                          error=f"{source}: {error}", full_folder=str(output_folder))
     replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
     kept = previous is not None and previous.output == name  # its own name: nothing to note
     return ClipJob(source, output, entry, "" if kept else preferred,
@@ -550,7 +554,10 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         state = "queued" if result.status in ("interrupted", "no_space") else result.status
         journal.finish(job.source, state, result.seconds, result.error, clip, result.content)
     except (JournalError, OSError) as error:
-        return ClipResult(str(job.source), None, "failed", 0.0, error=f"{job.source}: {error}")
+        full = isinstance(error, JournalError) and error.disk_full
+        return ClipResult(str(job.source), None, "no_space" if full else "failed", 0.0,
+                          error=f"{job.source}: {error}",
+                          full_folder=str(job.output.parent) if full else None)
     return result
 
 

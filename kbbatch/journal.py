@@ -94,6 +94,9 @@ def _message(text: str | None) -> str | None:
 class JournalError(OSError):
     """The journal cannot be read or written (a full disk, a read-only or broken file)."""
 
+    disk_full = False
+    """Whether its disk had no room (SQLite's SQLITE_FULL): every write after would fail too."""
+
 
 @dataclass(frozen=True)
 class Job:
@@ -161,9 +164,11 @@ def _guarded(method):
             return method(self, *args, **kwargs)
         except sqlite3.Error as error:
             verb = "read" if getattr(self, "read_only", False) else "written"
-            raise JournalError(f"{self.path}: job journal cannot be {verb} ({error})"
-                               f"{free_space_note(self.path.parent)}{_damage_advice(error)}"
-                               ) from error
+            failure = JournalError(f"{self.path}: job journal cannot be {verb} ({error})"
+                                   f"{free_space_note(self.path.parent)}"
+                                   f"{_damage_advice(error)}")
+            failure.disk_full = getattr(error, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
+            raise failure from error
     wrapper.__doc__ = method.__doc__
     return wrapper
 

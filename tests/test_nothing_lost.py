@@ -496,12 +496,14 @@ def test_a_full_disk_stops_the_batch_cleanly_and_a_rerun_finishes(tmp_path, tiny
     folder = tmp_path / "in"
     for index in range(3):
         photo(folder / f"p{index}.jpg", seed=index)
-    for leave_kb in (0, 8, 40, 120, 300):
+    for leave_kb in (0, 8, 40, 120, 200, 300):
         out = tiny_mount / f"out-{leave_kb}"
         filler = fill(tiny_mount, leave_kb * 1024)
         run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                              capture_output=True, text=True, timeout=300)
         assert "Traceback" not in run.stderr, f"{leave_kb} KB free:\n{run.stderr}"
+        # the journal's disk full too: the batch stops; each photo after it failed in turn
+        assert " 0 failed" in run.stdout or not run.stdout, f"{leave_kb} KB free: {run.stdout}"
         assert run.returncode in (0, 1) and (leave_kb > 0 or run.returncode == 1), (
             f"{leave_kb} KB free: {run.stdout}{run.stderr}")
         if run.returncode == 1:  # what stopped it says why; no photo is failed for it
