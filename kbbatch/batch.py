@@ -475,12 +475,13 @@ def settle_deleted_photos(journal, folder: Path, output_folder: Path) -> None:
     from kbbatch.journal import folder_key, in_folder
 
     folder = folder_key(folder)
+    done = journal.jobs("done")  # before the unfinished ones settle: photo_gone keeps some done
     for state in ("queued", "running"):
         for job in journal.jobs(state):
             source = Path(job.source)
             if in_folder(source, folder) and not os.path.lexists(source):
                 journal.photo_gone(source, output_folder)
-    for job in journal.jobs("done"):
+    for job in done:
         source = Path(job.source)
         if in_folder(source, folder) and not os.path.lexists(source):
             journal.done_photo_removed(source)
