@@ -578,7 +578,7 @@ class JobRunner:
                 # Deleted while its frames rendered: its clip no longer belongs to the inbox
                 # path, or a different photo dropped there later would take the clip's name
                 # as its own re-render and replace it.
-                self.journal.moved(job.path, job.path.with_name(f"{job.path.name}{GONE_MARK}"))
+                self.journal.done_photo_removed(job.path)
             if replaced:
                 log.info("done %s in %.1f s -> %s; %s was replaced by another photo while "
                          "its clip was made: that one gets a clip of its own", job.path.name,
