@@ -17,6 +17,7 @@ from pathlib import Path
 
 from kbbatch.depth import DepthError
 from kbbatch.images import (
+    NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     PHOTO_KINDS,
     UNREAD_FORMAT_REASON,
@@ -247,6 +248,8 @@ def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
     where = f"; subfolders are not searched: {_some(scan.subfolders)}" if scan.subfolders else ""
     if scan.unread_formats:
         where += f"; {_some(scan.unread_formats)}: {UNREAD_FORMAT_REASON}"
+    if scan.name_ends:
+        where += f"; {_some(scan.name_ends)}: {NAME_END_REASON}"
     if scan.hidden:
         where += f"; {_some(scan.hidden)}: {HIDDEN_REASON}"
     kinds = ", ".join(PHOTO_KINDS)
@@ -357,6 +360,7 @@ def run_folder(
     notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
              for sub in scan.subfolders]
     notes += [f"{path}: {UNREAD_FORMAT_REASON}" for path in scan.unread_formats]
+    notes += [f"{path}: {NAME_END_REASON}" for path in scan.name_ends]
     notes += [f"{path}: {OLD_PLAN_SHEET_REASON}" for path in scan.plan_sheets]
     if scan.hidden:
         notes.append(f"{folder}: {_some(scan.hidden)}: {HIDDEN_REASON}")

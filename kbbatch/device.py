@@ -8,7 +8,9 @@ at once with the reason, not at the first frame; `auto` is resolved by the proce
 from __future__ import annotations
 
 import functools
+import glob
 import os
+import sys
 
 DEVICE_NAMES = ("auto", "cpu", "cuda")
 """`auto`: CUDA when torch sees a GPU, else the CPU."""
@@ -19,6 +21,22 @@ offered by --device (the numba kernels are the faster CPU path)."""
 
 DEVICE_ENV = "KBBATCH_DEVICE"
 """Default of --device, for a daemon or an executor started without command-line options."""
+
+
+GPU_DRIVER_FILES = ("/dev/nvidia*", "/dev/dxg", "/dev/kfd", "/proc/driver/nvidia")
+"""Files a Linux machine has where torch could see a GPU: NVIDIA's devices (also in a container
+given a GPU), WSL 2's GPU device, ROCm's (AMD builds of torch answer torch.cuda too)."""
+
+
+def gpu_driver_present() -> bool:
+    """Whether a GPU driver could be there, without importing torch: that import costs 1.5 to
+    2 s in every run and daemon worker, which `auto` on a machine without a GPU need not pay.
+    Where it cannot be told from files (Windows), torch is asked."""
+    if sys.platform == "darwin":  # no CUDA build of torch for macOS
+        return False
+    if os.name != "posix":
+        return True
+    return any(glob.glob(pattern) for pattern in GPU_DRIVER_FILES)
 
 
 class DeviceError(ValueError):
@@ -45,7 +63,7 @@ def resolve_device(name: str) -> str:
     """`cpu` or `cuda` for a --device value; DeviceError when `cuda` cannot be had."""
     if name not in DEVICE_NAMES:
         raise DeviceError(f"unknown device {name!r}; choose one of {', '.join(DEVICE_NAMES)}")
-    if name == "cpu":
+    if name == "cpu" or (name == "auto" and not gpu_driver_present()):
         return "cpu"
     available, reason = cuda_available()
     if available:

@@ -41,6 +41,11 @@ over in silence with an exit status of success."""
 UNREAD_FORMAT_REASON = ("a photo format kbbatch does not read (convert it to JPEG, PNG, WebP, "
                         "TIFF or BMP)")
 
+NAME_END_REASON = ("the name ends in a space or a dot (after the photo's own extension); not "
+                   "taken: rename it to render it")
+"""`IMG_1.jpg ` (a copy from a system that kept the space): its extension is no photo's, and it
+was passed over without a word."""
+
 MAX_SOURCE_PIXELS = 120_000_000
 """Larger images are decoded at a reduced size (JPEG) or refused, so memory stays bounded."""
 
@@ -150,6 +155,7 @@ class FolderScan:
     subfolders: list[Path]  # not searched: one folder is one batch
     not_files: list[Path] = field(default_factory=list)  # a photo's name on a pipe, a device
     unread_formats: list[Path] = field(default_factory=list)  # HEIC, raw: not read
+    name_ends: list[Path] = field(default_factory=list)  # `IMG_1.jpg `: NAME_END_REASON
     plan_sheets: list[Path] = field(default_factory=list)  # an old `kbbatch plan`'s sheet
     hidden: list[Path] = field(default_factory=list)  # `.IMG_1.jpg`: photos by name, not taken
 
@@ -173,13 +179,19 @@ def entry_kind(path: Path) -> str | None:
     """What a folder entry is to a runner: "subfolder", "photo", or a photo's name on what
     cannot be read as one, "broken_link" or "not_file" (a named pipe, socket or device: reading
     it would block); "gone" for a photo's name with nothing there now; "unread_format" for a
-    photo in a format not read (UNREAD_PHOTO_SUFFIXES); "plan_sheet" for an old version's
+    photo in a format not read (UNREAD_PHOTO_SUFFIXES); "name_end" for a photo's name with
+    spaces or dots after its extension (NAME_END_REASON); "plan_sheet" for an old version's
     contact sheet (is_old_plan_sheet); None for anything else. One answer for the batch's scan
     and the daemon's inbox."""
     if path.is_dir():
         return "subfolder"
     if not is_image_file(path):
-        return "unread_format" if path.suffix.lower() in UNREAD_PHOTO_SUFFIXES else None
+        if path.suffix.lower() in UNREAD_PHOTO_SUFFIXES:
+            return "unread_format"
+        trimmed = path.name.rstrip(" .")
+        if trimmed != path.name and is_image_file(path.with_name(trimmed or ".")):
+            return "name_end"
+        return None
     if is_old_plan_sheet(path):
         return "plan_sheet"
     if path.is_file():
@@ -194,7 +206,7 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
     would otherwise be passed over without a word."""
     found: dict[str | None, list[Path]] = {"photo": [], "broken_link": [], "subfolder": [],
                                            "not_file": [], "unread_format": [],
-                                           "plan_sheet": []}
+                                           "name_end": [], "plan_sheet": []}
     hidden = []
     for path in sorted(folder.iterdir()):
         if path.name in ignore:
@@ -205,7 +217,8 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
             continue
         found.setdefault(entry_kind(path), []).append(path)
     return FolderScan(found["photo"], found["broken_link"], found["subfolder"],
-                      found["not_file"], found["unread_format"], found["plan_sheet"], hidden)
+                      found["not_file"], found["unread_format"], found["name_end"],
+                      found["plan_sheet"], hidden)
 
 
 def is_hidden_photo(path: Path) -> bool:

@@ -31,6 +31,7 @@ from kbbatch import models
 from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
+    NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
     atomic_output,
@@ -114,13 +115,15 @@ UNUSABLE_ENTRIES: dict[str, Callable[[Path], str]] = {
     "broken_link": broken_link_reason,  # a missing target, or links in a loop
     "not_file": lambda path: "not a regular file (a named pipe, socket or device); not read",
     "unread_format": lambda path: UNREAD_FORMAT_REASON,
+    "name_end": lambda path: NAME_END_REASON,
     "plan_sheet": lambda path: OLD_PLAN_SHEET_REASON,
 }
 """What the log says, once, of an inbox entry that is no photo to take (images.entry_kind)."""
 
-REWRITE_GRACE_S = 10.0
-"""A photo that fails while it was modified this recently (at least 5 settle times) is not filed
-away yet: a writer that paused longer than the settle time may still finish it."""
+REWRITE_GRACE_SETTLES = 5.0
+"""A photo that fails while it was modified within this many settle times (10 s at the default
+settle) is not filed away yet: a writer that paused longer than the settle time may still finish
+it. No floor: an inbox whose photos arrive whole (`--settle 0.5`) files a bad one in 2.5 s."""
 
 WORKER_DEATHS_TO_FAIL = 2
 """A photo whose worker process dies this often (while it runs alone) fails; others are retried."""
@@ -593,7 +596,7 @@ class JobRunner:
                 if job.replaces:
                     log.warning("%s", replaced_clip_note(job.path, job.output))
             elif not job.renamed and self.recently_written(job.path):
-                grace = max(REWRITE_GRACE_S, 5 * self.settings.settle_s)
+                grace = self.rewrite_grace_s()
                 self.suspects[job.path] = Suspect(result, job.fingerprint,
                                                   time.monotonic() + grace)
                 log.info("%s failed but was written %.0f s ago or less; filed as failed only "
@@ -691,7 +694,10 @@ class JobRunner:
             age_s = time.time() - path.stat().st_mtime
         except FileNotFoundError:
             return False
-        return age_s < max(REWRITE_GRACE_S, 5 * self.settings.settle_s)
+        return age_s < self.rewrite_grace_s()
+
+    def rewrite_grace_s(self) -> float:
+        return REWRITE_GRACE_SETTLES * self.settings.settle_s
 
     def file_suspects(self) -> None:
         """Failed photos on probation: changed means re-queued, unchanged in time means failed."""

@@ -4,6 +4,8 @@ the run report says where frames were rendered and on which provider each networ
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -33,6 +35,30 @@ def test_cpu_is_always_there_and_auto_falls_back_to_it():
     assert resolve_device("auto") == ("cuda" if available else "cpu")
     with pytest.raises(DeviceError, match="unknown device 'tpu'"):
         resolve_device("tpu")
+
+
+AUTO_IN_A_CHILD = """
+import sys
+from kbbatch import device
+device.GPU_DRIVER_FILES = (sys.argv[1],)
+print(device.resolve_device("auto"), "torch" in sys.modules)
+"""
+
+
+def test_auto_asks_torch_only_where_a_gpu_driver_is(tmp_path):
+    """Importing torch to ask cost every run and daemon worker 1.5 to 2 s on a CPU machine."""
+    pattern = str(tmp_path / "nvidia*")
+
+    def auto_in_a_child() -> str:
+        done = subprocess.run([sys.executable, "-c", AUTO_IN_A_CHILD, pattern],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip()
+
+    assert auto_in_a_child() == "cpu False"
+    (tmp_path / "nvidiactl").touch()
+    available, _ = cuda_available()
+    assert auto_in_a_child() == f"{'cuda' if available else 'cpu'} True"
 
 
 def test_cuda_without_a_gpu_is_a_clear_error_at_start(tmp_path):

@@ -23,6 +23,7 @@ from kbbatch import batch
 from kbbatch.batch import default_jobs, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.images import (
+    NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
     ImageReadError,
@@ -494,7 +495,7 @@ def test_a_cut_name_keeps_characters_whole_and_long_stems_apart():
 @pytest.mark.slow
 def test_a_full_disk_stops_the_batch_cleanly_and_a_rerun_finishes(tmp_path, tiny_mount):
     folder = tmp_path / "in"
-    for index in range(3):
+    for index in range(2):  # a photo after the one the disk stopped
         photo(folder / f"p{index}.jpg", seed=index)
     for leave_kb in (0, 8, 40, 120, 200, 300):
         out = tiny_mount / f"out-{leave_kb}"
@@ -518,11 +519,11 @@ def test_a_full_disk_stops_the_batch_cleanly_and_a_rerun_finishes(tmp_path, tiny
         rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                                capture_output=True, text=True, timeout=300)
         assert rerun.returncode == 0, rerun.stderr
-        assert visible_clips(out) == ["p0.mp4", "p1.mp4", "p2.mp4"]
+        assert visible_clips(out) == ["p0.mp4", "p1.mp4"]
         assert not list(out.glob(".*part*"))
         journal = Journal(out)
         try:
-            assert journal.counts()["done"] == 3 and not journal.jobs("running")
+            assert journal.counts()["done"] == 2 and not journal.jobs("running")
         finally:
             journal.close()
         shutil.rmtree(out)
@@ -1063,6 +1064,26 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
     assert [note for note in report.notes if "format kbbatch does not read" in note] == [
         f"{folder / name}: {UNREAD_FORMAT_REASON}" for name in ("IMG_0002.heic", "IMG_0003.PEF")]
+
+
+def test_a_photo_whose_name_ends_in_a_space_or_a_dot_is_said_not_passed_over(tmp_path,
+                                                                          quick_preset):
+    """`IMG_1.jpg ` (copied from a system that kept the space) has no photo's extension: it
+    was skipped without a word, and alone gave `no photos here` with no reason."""
+    folder = tmp_path / "in"
+    photo(folder / "IMG_1.jpg", seed=1).rename(folder / "IMG_1.jpg ")
+    run = subprocess.run([*CLI, str(folder), "-o", str(tmp_path / "out")],
+                         capture_output=True, text=True)
+    assert run.returncode == 3, run.stderr
+    assert f"IMG_1.jpg : {NAME_END_REASON}" in run.stderr, run.stderr
+    photo(folder / "IMG_2.JPG", seed=2).rename(folder / "IMG_2.JPG.")
+    photo(folder / "IMG_3.jpg", seed=3)
+    (folder / "notes.txt ").write_text("not a photo, whatever its name")
+    report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
+    assert [(Path(r.source).name, r.status) for r in report.results] == [("IMG_3.jpg", "done")]
+    assert [note for note in report.notes if NAME_END_REASON in note] == [
+        f"{folder / name}: {NAME_END_REASON}" for name in ("IMG_1.jpg ", "IMG_2.JPG.")]
+    assert (folder / "IMG_1.jpg ").is_file() and (folder / "IMG_2.JPG.").is_file()
 
 
 def test_an_empty_folder_says_so_and_writes_nothing(tmp_path):

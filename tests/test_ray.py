@@ -90,7 +90,7 @@ class LocalCluster:
         self.address = f"127.0.0.1:{self.port}"
         self.env = dict(os.environ, RAY_AUTH_MODE="disabled", KBBATCH_CACHE=str(depth_cache),
                         RAY_health_check_period_ms="500",
-                        RAY_health_check_failure_threshold="4")
+                        RAY_health_check_failure_threshold="10")  # 5 s: the loaded machine
         self.env.pop("RAY_ADDRESS", None)
         self.ray = str(Path(sys.executable).with_name("ray"))
         common = ["--node-ip-address=127.0.0.1", "--num-cpus=1",

@@ -14,6 +14,7 @@ from kbbatch.camera import working_view
 from kbbatch.device import TORCH_CPU
 from kbbatch.images import read_image
 from kbbatch.pipeline import ClipOptions, frame_times, prefetched, prepare_scene, render_view
+from kbbatch.presets import with_overrides
 from kbbatch.render import PointCloud, back_project, render_frame
 
 from .conftest import shared_photos
@@ -124,14 +125,16 @@ def test_real_photos_every_frame_matches_numba(quick_preset, monkeypatch):
     photos = [p for p in shared_photos(1)[0].parent.iterdir() if p.stem in REAL_PHOTOS]
     if len(photos) < len(REAL_PHOTOS):
         pytest.skip(f"needs the shared photos {', '.join(REAL_PHOTOS)}")
+    preset = with_overrides(quick_preset, duration_s=0.3)  # the start, middle and end views
+    assert preset.frames_forward == 3
     with_soft_layers = 0
     for path in sorted(photos):
-        prepared = prepare_scene(read_image(path), path, quick_preset, ClipOptions(), {})
+        prepared = prepare_scene(read_image(path), path, preset, ClipOptions(), {})
         with_soft_layers += prepared.cloud.opaque_count < len(prepared.cloud)
-        frames = list(pipeline.render_clip_frames(prepared, quick_preset, 2, device=TORCH_CPU))
-        assert len(frames) == quick_preset.frames_total
-        for index, t in enumerate(frame_times(quick_preset)):
-            expected = pipeline.frame_at(prepared, quick_preset, t)
+        frames = list(pipeline.render_clip_frames(prepared, preset, 2, device=TORCH_CPU))
+        assert len(frames) == preset.frames_total
+        for index, t in enumerate(frame_times(preset)):
+            expected = pipeline.frame_at(prepared, preset, t)
             assert psnr_db(frames[index], expected) >= MIN_PSNR_DB, (path.name, index)
     assert with_soft_layers, "none of the photos has soft layers (depth edges)"
 

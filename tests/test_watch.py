@@ -224,7 +224,7 @@ def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     outbox.mkdir()
-    preset = preset_file(tmp_path, 40.0, fps=25.0)
+    preset = preset_file(tmp_path, 8.0, fps=25.0)
     [photo] = shared_photos(1)
     for attempt in range(3):
         stem = f"a{attempt}"

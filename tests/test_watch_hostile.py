@@ -190,22 +190,25 @@ def test_subfolders_and_broken_links_in_the_inbox_are_logged(tmp_path):
     (inbox / "phone.heic").write_bytes(b"ftypheic")
     (inbox / "crops-previews").mkdir()  # an old `kbbatch plan` wrote these two
     Image.fromarray(textured_image(180, 320, seed=1)).save(inbox / "crops-contact.jpg")
+    Image.fromarray(textured_image(180, 320, seed=2)).save(tmp_path / "space.jpg")
+    (tmp_path / "space.jpg").rename(inbox / "space.jpg ")  # copied keeping a trailing space
     Image.fromarray(textured_image(180, 320)).save(inbox / "after.jpg")
     daemon = start_daemon(inbox, outbox, preset)
     try:
-        wait_for(lambda: "holiday: subfolders are not watched" in daemon_log(tmp_path)
+        wait_for(lambda: "space.jpg : the name ends in a space" in daemon_log(tmp_path)
+                 and "holiday: subfolders are not watched" in daemon_log(tmp_path)
                  and "gone.jpg: broken symbolic link" in daemon_log(tmp_path)
                  and "pipe.jpg: not a regular file" in daemon_log(tmp_path)
                  and "phone.heic: a photo format kbbatch does not read" in daemon_log(tmp_path)
                  and "crops-contact.jpg: contact sheet of an earlier" in daemon_log(tmp_path),
-                 120, "the five warnings")
+                 120, "the six warnings")
         wait_for(lambda: clips_in(outbox) == ["after.mp4"], 120, "the photo after the pipe")
     finally:
         assert stop(daemon) == 0
     assert "ERROR" not in daemon_log(tmp_path)
     assert sorted(p.name for p in inbox.iterdir()) == [
         "crops-contact.jpg", "crops-previews", "done", "gone.jpg", "holiday", "phone.heic",
-        "pipe.jpg"]
+        "pipe.jpg", "space.jpg "]
 
 
 def test_sigterm_logs_no_error(tmp_path):
@@ -428,7 +431,7 @@ def test_a_photo_replaced_under_its_name_while_its_clip_is_made_does_not_take_th
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     outbox.mkdir()
-    preset = preset_file(tmp_path, 40.0, fps=25.0)  # a long encode, to act during it
+    preset = preset_file(tmp_path, 8.0, fps=25.0)  # held mid-encode below, to act during it
     first, second = photo_bytes(tmp_path, 1), photo_bytes(tmp_path, 2)
     drop(inbox, "a.jpg", first)
     daemon = start_daemon(inbox, outbox, preset, *observer)
