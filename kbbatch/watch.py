@@ -254,9 +254,10 @@ class Arrival:
 class InboxTracker:
     """Which photos in the inbox are complete: file events in, settled photos out."""
 
-    def __init__(self, inbox: Path, settle_s: float) -> None:
+    def __init__(self, inbox: Path, settle_s: float, ignore: tuple[str, ...] = ()) -> None:
         self.inbox = inbox
         self.settle_s = settle_s
+        self.ignore = (DONE_FOLDER, FAILED_FOLDER, *ignore)  # the daemon's own folders
         self.events: queue.Queue[tuple[Path, bool]] = queue.Queue()  # filled by the observer
         self.arrivals: dict[Path, Arrival] = {}
         self.mentioned: set[Path] = set()  # subfolders and broken links already logged
@@ -305,7 +306,7 @@ class InboxTracker:
 
     def usable(self, path: Path) -> bool:
         """A photo to take; a subfolder, broken link or pipe is said once in the log."""
-        if path.name in (DONE_FOLDER, FAILED_FOLDER) or path.name.startswith("."):
+        if path.name in self.ignore or path.name.startswith("."):
             return False
         kind = entry_kind(path)
         if kind in UNUSABLE_ENTRIES:
@@ -796,26 +797,34 @@ class Daemon:
             raise OutputFolderError(f"{s.inbox}: no such inbox, nor its folder "
                                     f"{s.inbox.parent} (a share not mounted yet?)")
         check_writable(s.outbox)
-        if not s.inbox.is_dir():
-            s.inbox.mkdir(exist_ok=True)
-            log.info("made the inbox %s", s.inbox)
-        # Checked as given (a dangling link is no inbox to make), then followed: the journal
-        # keys jobs by the photo's folder resolved (journal.photo_key).
-        resolved = folder_key(s.inbox)
-        if resolved != s.inbox:
-            s = self.settings = replace(s, inbox=resolved, inbox_as_given=s.inbox)
-        self.inbox = InboxTracker(s.inbox, s.settle_s)
-        for name in (DONE_FOLDER, FAILED_FOLDER):  # else a traceback after the first clip
-            where = s.inbox / name
-            if (where.exists() or where.is_symlink()) and not where.is_dir():
-                raise OutputFolderError(f"{where}: not a folder; the daemon moves finished "
-                                        f"photos into {name}/ in the inbox: move this file away")
-        locks = [FolderLock(s.inbox, "watching"), FolderLock(s.outbox, "writing clips into")]
+        # The output folder's lock first: a daemon refused for a busy one made the inbox it
+        # named and left it behind.
+        outbox_lock = FolderLock(s.outbox, "writing clips into")
         try:
-            return self.serve()
+            if not s.inbox.is_dir():
+                s.inbox.mkdir(exist_ok=True)
+                log.info("made the inbox %s", s.inbox)
+            # Checked as given (a dangling link is no inbox to make), then followed: the
+            # journal keys jobs by the photo's folder resolved (journal.photo_key).
+            resolved = folder_key(s.inbox)
+            if resolved != s.inbox:
+                s = self.settings = replace(s, inbox=resolved, inbox_as_given=s.inbox)
+            outbox = folder_key(s.outbox)  # inside the inbox, it is no subfolder to warn of
+            self.inbox = InboxTracker(s.inbox, s.settle_s, (outbox.name,)
+                                      if outbox.parent == s.inbox else ())
+            for name in (DONE_FOLDER, FAILED_FOLDER):  # else a traceback after the first clip
+                where = s.inbox / name
+                if (where.exists() or where.is_symlink()) and not where.is_dir():
+                    raise OutputFolderError(f"{where}: not a folder; the daemon moves finished "
+                                            f"photos into {name}/ in the inbox: move this file "
+                                            "away")
+            inbox_lock = FolderLock(s.inbox, "watching")
+            try:
+                return self.serve()
+            finally:
+                inbox_lock.release()
         finally:
-            for lock in locks:
-                lock.release()
+            outbox_lock.release()
 
     def serve(self) -> int:
         s = self.settings

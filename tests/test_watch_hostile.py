@@ -178,8 +178,30 @@ def test_a_second_daemon_on_the_same_inbox_is_refused(tmp_path):
                                  str(preset)], capture_output=True, text=True, timeout=120)
         assert second.returncode != 0
         assert "already watching" in second.stderr and "Traceback" not in second.stderr
+        # refused for its busy output folder, it made the inbox it named and left it there
+        new_inbox = tmp_path / "new-inbox"
+        third = subprocess.run([*CLI, "watch", str(new_inbox), "--out", str(outbox),
+                                "--preset", str(preset)], capture_output=True, text=True,
+                               timeout=120)
+        assert third.returncode != 0 and "already writing clips into" in third.stderr
+        assert not new_inbox.exists()
     finally:
         assert stop(daemon) == 0
+
+
+def test_an_output_folder_inside_the_inbox_is_not_warned_of_as_a_subfolder(tmp_path):
+    inbox, _, preset = folders(tmp_path)
+    (inbox / "trip").mkdir()
+    Image.fromarray(textured_image(180, 320)).save(inbox / "a.jpg")
+    outbox = inbox / "clips"
+    daemon = start_daemon(inbox, outbox, preset, log_path=tmp_path / "daemon.log")
+    try:
+        wait_for(lambda: clips_in(outbox) == ["a.mp4"], 120, "a.jpg's clip in inbox/clips")
+    finally:
+        assert stop(daemon) == 0
+    log = daemon_log(tmp_path)
+    assert "trip: subfolders are not watched" in log
+    assert "clips: subfolders" not in log, log
 
 
 def test_subfolders_and_broken_links_in_the_inbox_are_logged(tmp_path):
