@@ -705,8 +705,13 @@ def make_clip(
             plan = entry.plan(photo.shape[1], photo.shape[0], working_width, preset.aspect,
                               preset.easing)
             result.note = entry.planned_for_another(source)
-        prepared = prepare_scene(photo, source, preset, options, timings, plan,
-                                 result.content)
+        try:
+            prepared = prepare_scene(photo, source, preset, options, timings, plan,
+                                     result.content)
+        except DepthError as error:  # the map a manifest names: said as the entry's fault
+            if entry is None or not str(error).startswith(f"{entry.depth_file}: "):
+                raise
+            raise ManifestError(f"{entry.where('depth')}: {error}") from error
         result.depth_backend = prepared.depth_backend
         result.risk = prepared.risk.summary() if prepared.risk else None
         result.plan = plan_summary(prepared.plan, photo.shape[1] / prepared.scene.width_px)

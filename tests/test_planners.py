@@ -497,6 +497,27 @@ def test_a_missing_depth_file_of_an_entry_names_the_manifest_image_and_field(tmp
     assert "maps/a.depth.png is not a file" in failed.error
 
 
+def test_an_entrys_depth_naming_a_colour_photo_fails_that_entry_naming_it(tmp_path,
+                                                                          quick_preset):
+    """`"depth": "photos/b.jpg"`, another photo: the failure read `FAILED .../b.jpg: is a
+    colour picture`, as if b.jpg had failed; a.jpg failed, for its entry's field."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "a.jpg")
+    Image.fromarray(textured_image(180, 320, seed=2)).save(folder / "b.jpg")
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1,
+                                    "images": {"a.jpg": {"depth": "photos/b.jpg"}}}))
+    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
+                        show_progress=False, manifest=load_manifest(manifest))
+    [failed] = report.failed
+    assert Path(failed.source).name == "a.jpg"
+    assert failed.error.startswith(f"{manifest}: image 'a.jpg': field 'depth': "
+                                   f"{folder / 'b.jpg'}: is a colour picture"), failed.error
+    assert f"{folder / 'b.jpg'}: the depth map of a.jpg in {manifest}; not rendered as " \
+           "a photo" in report.notes
+
+
 def test_a_manifest_that_is_not_utf8_is_a_clear_error_and_a_bom_is_fine(tmp_path):
     document = '{"version": 1, "images": {"a.jpg": {"planner": "2d"}}}'
     (tmp_path / "u16.json").write_bytes(document.encode("utf-16"))
