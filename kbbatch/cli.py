@@ -414,6 +414,11 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         raise click.ClickException(f"cannot listen on {host}:{port} ({error.strerror or error});"
                                    " choose another --host or --port") from error
 
+    for link in session.links_out:
+        click.echo(one_line(f"NOTE {link}: a link to a photo outside the folder; not shown (the "
+                            "review serves only what lies inside it); the batch renders it "
+                            "with its automatic plan"), err=True)
+
     def ready(url: str) -> None:
         click.echo(f"kbbatch review: {len(session.photos)} photo(s) of {session.folder} at {url}"
                    f"\nsaving to {session.manifest_path}; Ctrl-C stops")

@@ -330,7 +330,7 @@ def test_a_photo_that_cannot_be_read_is_reported_not_served(tmp_path, preset):
 def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
     command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
                str(tmp_path / "cli.json"), "--port", "0", "--depth", "ramp"]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
     try:
         first_line = process.stdout.readline()
@@ -340,6 +340,9 @@ def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
         assert names == set(SIZES)
         process.send_signal(signal.SIGINT)
         assert process.wait(timeout=30) == 0
+        # the link out of the folder, not served, is said (it was left out without a word)
+        assert f"NOTE {folder / 'link.png'}: a link to a photo outside the folder; not " \
+               "shown" in process.stderr.read()
     finally:
         if process.poll() is None:
             process.kill()

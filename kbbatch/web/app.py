@@ -141,9 +141,12 @@ class ReviewSession:
                          else None)
         self.cache_dir = kept if self._scratch is None else Path(self._scratch.name)
         self.token = secrets.token_urlsafe(32)
-        # Only files that really lie inside the folder: a symlink pointing out is not served.
-        self.photos = {p.name: PhotoState(p) for p in list_images(self.folder)
+        # Only files that really lie inside the folder: a symlink pointing out is not served,
+        # and said (the batch renders it, with its automatic plan).
+        listed = list_images(self.folder)
+        self.photos = {p.name: PhotoState(p) for p in listed
                        if p.resolve().is_relative_to(self.folder)}
+        self.links_out = [p for p in listed if p.name not in self.photos]
         self._manifest_signature = _stat_signature(self.manifest_path)
         if self.manifest_path.exists():  # a depth map the manifest names is no photo to plan
             maps = load_manifest(self.manifest_path)  # (render and plan pass it over too)
