@@ -10,14 +10,14 @@ import pytest
 from PIL import Image
 
 from kbbatch import paper
-from kbbatch.batch import plan_folder, run_folder
+from kbbatch.batch import RunReport, plan_folder, run_folder
 from kbbatch.camera import Crop, depth_from_disparity
 from kbbatch.manifest import ManifestError, load_manifest, plan_to_entry
 from kbbatch.outputs import OutputFolderError
 from kbbatch.pipeline import ClipOptions
 from kbbatch.planners import PlanRequest, get_planner
 from kbbatch.planners.auto import plan_disocclusion
-from kbbatch.presets import load_preset, with_overrides
+from kbbatch.presets import Preset, load_preset, with_overrides
 
 from .conftest import shared_photos, textured_image
 
@@ -482,16 +482,21 @@ def test_json_a_manifest_cannot_hold_is_refused_naming_it(tmp_path, text, reason
         load_manifest(path)
 
 
+def run_with_depth_of_a(folder: Path, depth: str, preset: Preset) -> tuple[RunReport, Path]:
+    """The folder's batch under a manifest (beside the folder) whose a.jpg names depth."""
+    manifest = folder.parent / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"a.jpg": {"depth": depth}}}))
+    report = run_folder(folder, folder.parent / "out", preset, ClipOptions(threads=2),
+                        show_progress=False, manifest=load_manifest(manifest))
+    return report, manifest
+
+
 def test_a_missing_depth_file_of_an_entry_names_the_manifest_image_and_field(tmp_path,
                                                                           quick_preset):
     folder = tmp_path / "in"
     folder.mkdir()
     Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
-    manifest = tmp_path / "m.json"
-    manifest.write_text(json.dumps({"version": 1,
-                                    "images": {"a.jpg": {"depth": "maps/a.depth.png"}}}))
-    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
-                        show_progress=False, manifest=load_manifest(manifest))
+    report, _ = run_with_depth_of_a(folder, "maps/a.depth.png", quick_preset)
     [failed] = report.failed
     assert "m.json: image 'a.jpg': field 'depth'" in failed.error
     assert "maps/a.depth.png is not a file" in failed.error
@@ -505,11 +510,7 @@ def test_an_entrys_depth_naming_a_colour_photo_fails_that_entry_naming_it(tmp_pa
     folder.mkdir()
     Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "a.jpg")
     Image.fromarray(textured_image(180, 320, seed=2)).save(folder / "b.jpg")
-    manifest = tmp_path / "m.json"
-    manifest.write_text(json.dumps({"version": 1,
-                                    "images": {"a.jpg": {"depth": "photos/b.jpg"}}}))
-    report = run_folder(folder, tmp_path / "out", quick_preset, ClipOptions(threads=2),
-                        show_progress=False, manifest=load_manifest(manifest))
+    report, manifest = run_with_depth_of_a(folder, "photos/b.jpg", quick_preset)
     [failed] = report.failed
     assert Path(failed.source).name == "a.jpg"
     assert failed.error.startswith(f"{manifest}: image 'a.jpg': field 'depth': "
