@@ -503,6 +503,10 @@ def excluded_result(journal, source: Path, output_folder: Path) -> ClipResult:
     return result
 
 
+ADOPTED_NOTE = ("{name}: made by kbbatch from this photo with these settings (its mark says "
+                "so) but missing from the journal; kept, and recorded")
+
+
 def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,
               options: ClipOptions, entry: ManifestEntry | None, force: bool
               ) -> ClipJob | ClipResult:
@@ -520,13 +524,16 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
+        adopted = journal.adopt_marked_clip(source, fingerprint, settings, content,
+                                            output_folder / preferred)
         previous = journal.job_of(source, content)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
         if not force and up_to_date and not (options.save_depth
                                              and depth_images_missing(output)):
-            return ClipResult(str(source), str(output), "skipped", 0.0)
+            return ClipResult(str(source), str(output), "skipped", 0.0,
+                              note=ADOPTED_NOTE.format(name=name) if adopted else None)
         journal.start(source, fingerprint, settings[0], name, content)
     except JournalError as error:
         # a full disk: not the photo's fault, and the photos after it would fail too

@@ -193,7 +193,37 @@ def is_yuv(pix_fmt: str) -> bool:
     return pix_fmt.startswith(("yuv", "nv", "p010", "p016"))  # yuvj* too
 
 
-def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[str]:
+CLIP_MARK = re.compile(rb"kbbatch clip of sha256:([0-9a-f]{64}) settings:([0-9a-f]{16,64})")
+"""The comment kbbatch writes into each clip: the photo's bytes and settings it was made from
+(pipeline.clip_fingerprints), so that a clip the journal has no record of (the journal deleted,
+the folder copied without it) is still known as this photo's, and not made again beside itself
+under a content name."""
+
+CLIP_MARK_SEARCH_BYTES = 4 << 20
+"""How far into a clip its mark is looked for: `+faststart` puts the metadata, with the
+comment, before the frames (a 2-minute 4K clip's index is well under this)."""
+
+
+def clip_mark(content: str, settings: str) -> str:
+    return f"kbbatch clip of sha256:{content} settings:{settings}"
+
+
+def read_clip_mark(path: Path) -> tuple[str, str] | None:
+    """(photo sha256, settings digest) from a clip's mark; None for a file without one, and
+    for what kbbatch never writes at a clip's name (a link, a pipe: reading one would block)."""
+    if path.is_symlink() or not path.is_file():
+        return None
+    try:
+        with path.open("rb") as handle:
+            head = handle.read(CLIP_MARK_SEARCH_BYTES)
+    except OSError:
+        return None
+    found = CLIP_MARK.search(head)
+    return (found[1].decode(), found[2].decode()) if found else None
+
+
+def encoder_command(path: Path, preset: Preset, container: str = "mp4",
+                    comment: str | None = None) -> list[str]:
     """The ffmpeg command that reads raw RGB frames on stdin and writes the clip."""
     stream = ffmpeg.input(
         "pipe:", format="rawvideo", pix_fmt="rgb24",
@@ -209,6 +239,8 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4") -> list[
     }
     if container == "mp4":
         options["movflags"] = "+faststart"
+    if comment is not None:
+        options["metadata"] = f"comment={comment}"
     out = ffmpeg.output(stream, OUTPUT_PLACEHOLDER, **options).global_args(
         "-loglevel", "error", "-nostdin")
     command = ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
@@ -237,12 +269,15 @@ def caught_stop(status: int, stderr: str) -> bool:
         not stderr.strip() or FFMPEG_STOP_MESSAGE in stderr or FFMPEG_CUT_FRAME_MESSAGE in stderr)
 
 
-def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset) -> int:
-    """Write frames (H, W, 3 uint8 RGB) to path with the preset's encoder; returns the count."""
+def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset,
+                  comment: str | None = None) -> int:
+    """Write frames (H, W, 3 uint8 RGB) to path with the preset's encoder; returns the count.
+    comment: written into the clip's metadata (clip_mark)."""
     # Its own session: a stop signal sent to the whole process group (a shell, a supervisor)
     # is the runner's to act on; the runner then finishes or ends the clip itself.
     process = subprocess.Popen(
-        encoder_command(path, preset), stdin=subprocess.PIPE, stderr=subprocess.PIPE,
+        encoder_command(path, preset, comment=comment), stdin=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         start_new_session=True,
     )
     count = 0

@@ -331,6 +331,24 @@ class Journal:
         rows = self.connection.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state")
         return {state: 0 for state in STATES} | dict(rows.fetchall())
 
+    def adopt_marked_clip(self, source: Path, fingerprint: str, settings: tuple[str, ...],
+                          content: str, output: Path) -> bool:
+        """Record as done a clip of this photo's bytes and one of these settings, at the name
+        it would be given, that the journal knows nothing of (the journal deleted, the folder
+        copied without it): kbbatch's by the mark in the file (encode.clip_mark). It was taken
+        for a file of the user's, and every clip was made again beside itself under a content
+        name. A file without the mark, or another photo's or settings', is left as it was."""
+        from kbbatch.encode import read_clip_mark
+
+        if self.job_of(source, content) is not None or self.owners(output.name):
+            return False
+        mark = read_clip_mark(output)
+        if mark is None or mark[0] != content or mark[1] not in settings:
+            return False
+        self.start(source, fingerprint, mark[1], output.name, content)
+        self.finish(source, "done", 0.0, None, source_fingerprint(output), content)
+        return True
+
     def is_up_to_date(self, source: Path, fingerprint: str, settings: tuple[str, ...],
                       output: Path, content: str) -> bool:
         """Done with this photo's bytes and one of these settings' digests, and the clip is

@@ -43,7 +43,7 @@ from kbbatch.camera import working_size as compute_working_size
 from kbbatch.depth import DepthError, DepthOptions, DepthResult, SceneContext, estimate_disparity
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DeviceError, frames_device
-from kbbatch.encode import EncoderStoppedError, encode_frames, palindrome_order
+from kbbatch.encode import EncoderStoppedError, clip_mark, encode_frames, palindrome_order
 from kbbatch.images import (
     ImageReadError,
     atomic_output,
@@ -693,6 +693,7 @@ def make_clip(
     started = time.perf_counter()
     timings: dict[str, float] = {}
     result = ClipResult(str(source), None, "failed", 0.0)
+    given = preset, options  # the settings the clip's mark digests, as the runner does
     try:
         preset, options = apply_entry(entry, preset, options)
         result.preset = preset.name
@@ -722,7 +723,9 @@ def make_clip(
             frames = render_clip_frames(prepared, preset, options.threads, bar.update,
                                         result.device)
             with atomic_output(output, CLIP_SUFFIX, make_folder=False) as temp_path:
-                result.frames = encode_frames(temp_path, frames, preset)
+                result.frames = encode_frames(temp_path, frames, preset,
+                                              own_clip_mark(source, result.content, *given,
+                                                            entry))
         timings["frames+encode"] = time.perf_counter() - clock
         # The depth images after the clip: written first, a run killed mid-encode left the new
         # photo's maps beside no clip (or beside the old photo's clip).
@@ -759,6 +762,15 @@ def make_clip(
     result.seconds = time.perf_counter() - started
     result.stage_seconds = {k: round(v, 3) for k, v in timings.items()}
     return result
+
+
+def own_clip_mark(source: Path, content: str, preset: Preset, options: ClipOptions,
+                  entry: ManifestEntry | None) -> str | None:
+    """The mark a clip carries (encode.clip_mark); None where its settings cannot be read."""
+    try:
+        return clip_mark(content, clip_fingerprints(source, content, preset, options, entry)[0])
+    except OSError:
+        return None
 
 
 def clip_fingerprints(source: Path, content: str, preset: Preset, options: ClipOptions,

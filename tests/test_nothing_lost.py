@@ -10,6 +10,7 @@ import os
 import resource
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -32,6 +33,7 @@ from kbbatch.images import (
 )
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
 from kbbatch.pipeline import ClipOptions
+from kbbatch.presets import with_overrides
 
 from .conftest import textured_image
 from .test_watch import wait_for
@@ -1386,7 +1388,7 @@ def test_a_damaged_journal_says_how_to_go_on_and_going_on_keeps_the_clips(tmp_pa
                                                                          quick_preset):
     """A journal that is no longer a database stopped every run into its folder with "file is
     not a database" and nothing more. The advice given is followed here: the clip made
-    before stays as it was, and the photo's new clip takes a name of its own."""
+    before stays as it was, known as this photo's by its mark, and up to date."""
     from kbbatch.journal import JOURNAL_NAME
     from kbbatch.outputs import OutputFolderError
 
@@ -1399,6 +1401,53 @@ def test_a_damaged_journal_says_how_to_go_on_and_going_on_keeps_the_clips(tmp_pa
         run_folder(folder, out, quick_preset, FAST, False)
     (out / JOURNAL_NAME).rename(tmp_path / "journal.bak")
     report = run_folder(folder, out, quick_preset, FAST, False)
-    assert [result.status for result in report.results] == ["done"]
+    assert [result.status for result in report.results] == ["skipped"]
     assert (out / "a.mp4").read_bytes() == made
-    assert len(visible_clips(out)) == 2
+    assert visible_clips(out) == ["a.mp4"]
+
+
+def test_clips_whose_journal_was_deleted_are_known_by_their_mark_not_made_again(
+        tmp_path, quick_preset):
+    """With the journal gone (deleted, the folder copied without it) every clip was taken for
+    a file of the user's and made again beside itself under a content name. A clip's mark
+    (the photo's sha256 and settings, in its metadata) says whose it is: kept, recorded, up
+    to date. A file without it, or with another photo's, is still the user's."""
+    from kbbatch.encode import clip_mark, read_clip_mark
+    from kbbatch.fingerprint import file_sha256
+    from kbbatch.journal import JOURNAL_NAME
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    for index in range(3):
+        photo(folder / f"p{index}.jpg", seed=index)
+    run_folder(folder, out, quick_preset, FAST, False)
+    made = {name: (out / name).read_bytes() for name in visible_clips(out)}
+    mark = read_clip_mark(out / "p0.mp4")
+    assert mark is not None and mark[0] == file_sha256(folder / "p0.jpg")
+    assert clip_mark(*mark).encode() in made["p0.mp4"]
+    for journal_file in out.glob(JOURNAL_NAME + "*"):
+        journal_file.unlink()
+    (out / "p1.mp4").write_bytes(made["p2.mp4"])  # another photo's clip at p1's name
+    (out / "p2.mp4").unlink()
+    os.mkfifo(out / "p2.mp4")  # no mark, and read it would block the batch for good
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    by_name = {Path(r.source).name: r for r in report.results}
+    assert by_name["p0.jpg"].status == "skipped"
+    assert "p0.mp4: made by kbbatch from this photo with these settings" in by_name[
+        "p0.jpg"].note
+    assert by_name["p1.jpg"].status == by_name["p2.jpg"].status == "done"
+    assert (out / "p0.mp4").read_bytes() == made["p0.mp4"]
+    assert (out / "p1.mp4").read_bytes() == made["p2.mp4"]
+    assert stat.S_ISFIFO((out / "p2.mp4").stat().st_mode)
+    assert len(visible_clips(out)) == 5  # p1 and p2 made under names of their own
+    again = run_folder(folder, out, quick_preset, FAST, False)
+    assert [r.status for r in again.results] == ["skipped"] * 3
+    assert not any(r.note for r in again.results)
+    # Other settings: the clip is not up to date. Without the journal's record of its size,
+    # an edit of it saved in place (which may keep its metadata) cannot be told from it: it
+    # is kept, and the new clip made beside it.
+    for journal_file in out.glob(JOURNAL_NAME + "*"):
+        journal_file.unlink()
+    report = run_folder(folder, out, with_overrides(quick_preset, duration_s=0.8), FAST, False)
+    [p0] = [r for r in report.results if Path(r.source).name == "p0.jpg"]
+    assert p0.status == "done" and Path(p0.output).name.startswith("p0.")
+    assert (out / "p0.mp4").read_bytes() == made["p0.mp4"]

@@ -770,6 +770,31 @@ def test_the_daemon_says_a_clip_is_replaced_only_once_it_is(tmp_path):
     assert "changed since a.mp4 was made" not in daemon_log(tmp_path)
 
 
+def test_a_clip_whose_journal_was_deleted_is_known_by_its_mark(tmp_path):
+    """The journal gone, a photo dropped again had its clip made again beside the first under
+    a content name; the clip's mark says it is this photo's, made with these settings."""
+    from kbbatch.journal import JOURNAL_NAME
+
+    inbox, outbox, preset = folders(tmp_path)
+    drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: (inbox / "done" / "a.jpg").exists(), 240, "a.jpg made")
+    finally:
+        assert stop(daemon) == 0
+    made = (outbox / "a.mp4").stat().st_mtime_ns
+    for journal_file in outbox.glob(JOURNAL_NAME + "*"):
+        journal_file.unlink()
+    os.rename(inbox / "done" / "a.jpg", inbox / "a.jpg")
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: (inbox / "done" / "a.jpg").exists(), 240, "a.jpg taken again")
+    finally:
+        assert stop(daemon) == 0
+    assert "a.jpg: clip already complete" in daemon_log(tmp_path)
+    assert clips_in(outbox) == ["a.mp4"] and (outbox / "a.mp4").stat().st_mtime_ns == made
+
+
 def test_the_same_photo_dropped_again_is_not_made_again(tmp_path):
     """A photo dropped in the inbox a second time (copied again from the card, or put back from
     done/) was made again and its clip rewritten: its clip is complete, so the daemon says so
