@@ -124,6 +124,11 @@ class Job:
                 and self.content not in (None, content) and output.is_file())
 
 
+ADOPTED_ATTEMPTS = 0
+"""The attempts of a done job that no run made: a clip adopted by its mark
+(Journal.adopt_marked_clip). A job made by a run has at least one."""
+
+
 def source_fingerprint(path: Path) -> str:
     """Size and modification time: a changed photo (or clip) is a new one."""
     stat = path.stat()
@@ -331,6 +336,7 @@ class Journal:
         rows = self.connection.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state")
         return {state: 0 for state in STATES} | dict(rows.fetchall())
 
+    @_guarded
     def adopt_marked_clip(self, source: Path, fingerprint: str, settings: tuple[str, ...],
                           content: str, output: Path) -> bool:
         """Record as done a clip of this photo's bytes and one of these settings, at the name
@@ -338,15 +344,37 @@ class Journal:
         copied without it): kbbatch's by the mark in the file (encode.clip_mark). It was taken
         for a file of the user's, and every clip was made again beside itself under a content
         name. A file without the mark, or another photo's or settings', is left as it was."""
-        from kbbatch.encode import read_clip_mark
+        from kbbatch.encode import is_whole_clip, read_clip_mark
 
         if self.job_of(source, content) is not None or self.owners(output.name):
             return False
         mark = read_clip_mark(output)
         if mark is None or mark[0] != content or mark[1] not in settings:
             return False
-        self.start(source, fingerprint, mark[1], output.name, content)
-        self.finish(source, "done", 0.0, None, source_fingerprint(output), content)
+        try:
+            clip = source_fingerprint(output)
+        except OSError:  # deleted meanwhile
+            return False
+        if not is_whole_clip(output):  # a copy that stopped keeps the mark at its start
+            return False
+        self.connection.execute(
+            "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output, error,"
+            " attempts, seconds, updated, content, clip)"
+            " VALUES (?, ?, ?, 'done', ?, NULL, ?, 0, ?, ?, ?)",
+            (_stored(source), fingerprint, mark[1], _stored(output.name), ADOPTED_ATTEMPTS,
+             time.time(), content, clip))
+        return True
+
+    @_guarded
+    def drop_adopted(self, source: Path) -> bool:
+        """Before a photo's clip is made again: the record of a clip adopted by its mark is
+        dropped, so that the new clip is named as beside a file of the user's, never over it.
+        An edit saved in place may keep the mark, and the size the clip had when written, by
+        which a journal tells its clip from such an edit, is unknown. True if there was one."""
+        job = self.get(source)
+        if job is None or job.state != "done" or job.attempts != ADOPTED_ATTEMPTS:
+            return False
+        self.forget(source)
         return True
 
     def is_up_to_date(self, source: Path, fingerprint: str, settings: tuple[str, ...],

@@ -1406,6 +1406,42 @@ def test_a_damaged_journal_says_how_to_go_on_and_going_on_keeps_the_clips(tmp_pa
     assert visible_clips(out) == ["a.mp4"]
 
 
+def test_a_marked_edit_or_a_cut_copy_is_never_made_over_once_the_journal_is_gone(
+        tmp_path, quick_preset):
+    """An edit saved in place may keep the clip's mark (a trim by stream copy does): taken
+    as the clip, it is kept when the clip is made again (--force, other settings), the new
+    one beside it. A copy that stopped keeps the mark at its start, and is no clip."""
+    import imageio_ffmpeg
+
+    from kbbatch.encode import read_clip_mark
+    from kbbatch.journal import JOURNAL_NAME
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "p0.jpg", seed=0)
+    photo(folder / "p1.jpg", seed=1)
+    run_folder(folder, out, quick_preset, FAST, False)
+    trimmed = tmp_path / "trimmed.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(out / "p0.mp4"),
+                    "-t", "0.5", "-c", "copy", "-movflags", "+faststart", str(trimmed)],
+                   check=True)
+    assert read_clip_mark(trimmed) == read_clip_mark(out / "p0.mp4")  # the edit kept it
+    trimmed.replace(out / "p0.mp4")
+    edit = (out / "p0.mp4").read_bytes()
+    whole = (out / "p1.mp4").read_bytes()
+    (out / "p1.mp4").write_bytes(whole[: len(whole) // 2])  # a copy that stopped
+    assert read_clip_mark(out / "p1.mp4") is not None
+    for journal_file in out.glob(JOURNAL_NAME + "*"):
+        journal_file.unlink()
+    report = run_folder(folder, out, quick_preset, FAST, False)
+    assert {Path(r.source).name: r.status for r in report.results} == {
+        "p0.jpg": "skipped", "p1.jpg": "done"}
+    assert len((out / "p1.mp4").read_bytes()) == len(whole) // 2  # kept, the clip beside it
+    again = run_folder(folder, out, quick_preset, FAST, False, force=True)
+    [p0] = [r for r in again.results if Path(r.source).name == "p0.jpg"]
+    assert p0.status == "done" and Path(p0.output).name != "p0.mp4"
+    assert (out / "p0.mp4").read_bytes() == edit
+
+
 def test_clips_whose_journal_was_deleted_are_known_by_their_mark_not_made_again(
         tmp_path, quick_preset):
     """With the journal gone (deleted, the folder copied without it) every clip was taken for
