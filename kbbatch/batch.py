@@ -534,10 +534,9 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
                                              and depth_images_missing(output)):
             return ClipResult(str(source), str(output), "skipped", 0.0,
                               note=ADOPTED_NOTE.format(name=name) if adopted else None)
-        if journal.drop_adopted(source):  # kept as it is; the new clip named beside it
-            name = journal.clip_name(source, content, preferred, output_folder,
-                                     options.save_depth)
-            output = output_folder / name
+        name = journal.name_to_make(source, content, preferred, output_folder,
+                                    options.save_depth, name)
+        output = output_folder / name
         journal.start(source, fingerprint, settings[0], name, content)
     except JournalError as error:
         # a full disk: not the photo's fault, and the photos after it would fail too

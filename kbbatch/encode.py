@@ -354,19 +354,19 @@ def is_cut_short_clip(path: Path, written_size_bytes: int) -> bool:
         return False
     if size >= written_size_bytes or head[4:8] != b"ftyp":
         return False
-    return not is_whole_clip(path, True)
+    return not is_whole_clip(path, if_unknown=True)
 
 
-def is_whole_clip(path: Path, unknown: bool = False) -> bool:
+def is_whole_clip(path: Path, if_unknown: bool = False) -> bool:
     """Whether ffmpeg reads a clip's video to its end (its packets, not decoded: fast);
-    `unknown` where ffmpeg could not be asked."""
+    if_unknown where ffmpeg could not be asked."""
     command = [ffmpeg_exe(), "-v", "error", "-xerror", "-i", str(path), "-map", "0:v:0",
                "-c", "copy", "-f", "null", "-"]
     try:
         return subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True,
                               timeout=120).returncode == 0
     except (OSError, subprocess.TimeoutExpired):
-        return unknown
+        return if_unknown
 
 
 def decode_frames(path: Path, width_px: int, height_px: int) -> Iterator[np.ndarray]:

@@ -188,8 +188,8 @@ def entry_kind(path: Path) -> str | None:
     if not is_image_file(path):
         if path.suffix.lower() in UNREAD_PHOTO_SUFFIXES:
             return "unread_format"
-        trimmed = path.name.rstrip(" .")
-        if trimmed != path.name and is_image_file(path.with_name(trimmed or ".")):
+        trimmed = path.name.rstrip(" .")  # empty for a name of dots and spaces only
+        if trimmed and trimmed != path.name and is_image_file(path.with_name(trimmed)):
             return "name_end"
         return None
     if is_old_plan_sheet(path):

@@ -365,17 +365,17 @@ class Journal:
              time.time(), content, clip))
         return True
 
-    @_guarded
-    def drop_adopted(self, source: Path) -> bool:
-        """Before a photo's clip is made again: the record of a clip adopted by its mark is
-        dropped, so that the new clip is named as beside a file of the user's, never over it.
-        An edit saved in place may keep the mark, and the size the clip had when written, by
-        which a journal tells its clip from such an edit, is unknown. True if there was one."""
+    def name_to_make(self, source: Path, content: str, preferred: str, folder: Path,
+                     with_depth_images: bool, name: str) -> str:
+        """The name clip_name gave, for a clip about to be made; but a clip adopted by its
+        mark is never made over: its record is dropped and the new clip named as beside a
+        file of the user's. An edit saved in place may keep the mark, and the size the clip
+        had when written, by which a journal tells its clip from such an edit, is unknown."""
         job = self.get(source)
         if job is None or job.state != "done" or job.attempts != ADOPTED_ATTEMPTS:
-            return False
+            return name
         self.forget(source)
-        return True
+        return self.clip_name(source, content, preferred, folder, with_depth_images)
 
     def is_up_to_date(self, source: Path, fingerprint: str, settings: tuple[str, ...],
                       output: Path, content: str) -> bool:

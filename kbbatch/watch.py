@@ -488,10 +488,9 @@ class JobRunner:
                 log.info("%s: clip already complete, moving the photo", path.name)
                 self.move_source(path, DONE_FOLDER)
                 continue
-            if self.journal.drop_adopted(path):  # kept as it is; the new clip named beside it
-                name = self.journal.clip_name(path, content, preferred, s.outbox,
-                                              options.save_depth)
-                output = s.outbox / name
+            name = self.journal.name_to_make(path, content, preferred, s.outbox,
+                                             options.save_depth, name)
+            output = s.outbox / name
             self.journal.start(path, fingerprint, settings[0], name, content)
             inbox.forget(path)
             note = clip_name_note(path, preferred, name)

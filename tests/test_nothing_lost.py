@@ -1081,6 +1081,8 @@ def test_a_photo_whose_name_ends_in_a_space_or_a_dot_is_said_not_passed_over(tmp
     photo(folder / "IMG_2.JPG", seed=2).rename(folder / "IMG_2.JPG.")
     photo(folder / "IMG_3.jpg", seed=3)
     (folder / "notes.txt ").write_text("not a photo, whatever its name")
+    for name in ("...", " . "):  # nothing left of them trimmed: no photo (it was a traceback)
+        (folder / name).write_text("dots and spaces only")
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
     assert [(Path(r.source).name, r.status) for r in report.results] == [("IMG_3.jpg", "done")]
     assert [note for note in report.notes if NAME_END_REASON in note] == [
