@@ -14,7 +14,10 @@ is the 2D crop of its alpha. Per frame:
   per 1000 pixels of the silhouette (true alpha >= 0.5);
 - tear: pixels more than 3 px inside it whose magenta level fell below half, per 1000;
 - edge error: mean |alpha - true alpha| within 4 px of the edge, alpha read from the magenta
-  level (the backgrounds' own level makes the start frame's error the baseline).
+  level (the backgrounds' own level makes the start frame's error the baseline);
+- fill PSNR: the frame against the truth (the photo alone, rendered over the background plane
+  alone: what the cut-out hides) outside the silhouette and within FILL_BAND_PX of it, where
+  the fill shows; only the fill, and ghosts, make the two differ there.
 
 Goals at the end view: ghost <= 1, tear <= 1, edge error <= the start frame's + 0.01.
 
@@ -49,6 +52,8 @@ TRACE_LEVEL = 24
 OUTSIDE_PX = 3
 EDGE_PX = 4
 SCENE_LONG_SIDE_PX = 2048
+FILL_BAND_PX = 80
+"""Fill PSNR is measured this far (output px) around the true silhouette."""
 TIMES = (0.0, 0.5, 1.0)
 SAVE_FRAMES = Path(os.environ["BENCH_LAYERS_FRAMES"]) if os.environ.get("BENCH_LAYERS_FRAMES") \
     else None
@@ -111,6 +116,17 @@ def build_scene(photo_path: Path, folder: Path, end_shift_px: tuple[float, float
     cv2.imwrite(str(folder / f"control_{photo_path.stem}.png"),
                 cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
     cv2.imwrite(str(folder / f"control_{photo_path.stem}.depth.png"), depth_png)
+    # The truth: the photo alone over the plane alone, with a speck of the cut-out's depth far
+    # from it (beside a crop's edge), so that both scenes' depths are scaled alike.
+    cv2.imwrite(str(folder / f"truth_{photo_path.stem}.png"),
+                cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
+    plane = np.broadcast_to(0.2 + 0.2 * rows, (height, width)).copy()
+    speck_y, speck_x = int(0.3 * height), int(0.85 * width)
+    plane[speck_y:speck_y + 6, speck_x:speck_x + 6] = 1.0
+    truth_png = np.round(1.0 / plane / depth.max() * 65535).astype(np.uint16)
+    if map_long_side_px:
+        truth_png = cv2.resize(truth_png, depth_png.shape[::-1], interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(folder / f"truth_{photo_path.stem}.depth.png"), truth_png)
     work_w, work_h = working_size(width, height)
     start_w = 0.97 * min(work_w, work_h * 16 / 9)
     start = Crop(work_w / 2, work_h / 2, start_w, start_w * 9 / 16)
@@ -136,6 +152,10 @@ def magenta_level(frame: np.ndarray) -> np.ndarray:
     return np.minimum(pixels[..., 0], pixels[..., 2]) - pixels[..., 1]
 
 
+def _disk(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2)
+
+
 def boundary_scores(frame: np.ndarray, alpha: np.ndarray, control: np.ndarray | None = None
                     ) -> tuple[float, float, float]:
     """(ghost per 1000, tear per 1000, mean edge alpha error) of one frame. With a control
@@ -145,16 +165,13 @@ def boundary_scores(frame: np.ndarray, alpha: np.ndarray, control: np.ndarray | 
     silhouette = (alpha >= 0.5).astype(np.uint8)
     area = max(1, int(silhouette.sum()))
 
-    def disk(radius: int) -> np.ndarray:
-        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1,) * 2)
-
     any_trace = (alpha > TRACE_LEVEL / 255).astype(np.uint8)  # the soft edge's visible tail
-    outside = cv2.dilate(any_trace, disk(OUTSIDE_PX)) == 0
-    inside = cv2.erode(silhouette, disk(OUTSIDE_PX)) > 0
-    edge = (cv2.dilate(silhouette, disk(EDGE_PX)) > 0) & (cv2.erode(silhouette, disk(EDGE_PX))
+    outside = cv2.dilate(any_trace, _disk(OUTSIDE_PX)) == 0
+    inside = cv2.erode(silhouette, _disk(OUTSIDE_PX)) > 0
+    edge = (cv2.dilate(silhouette, _disk(EDGE_PX)) > 0) & (cv2.erode(silhouette, _disk(EDGE_PX))
                                                          == 0)
     if control is not None:
-        own = cv2.dilate((magenta_level(control) > TRACE_LEVEL).astype(np.uint8), disk(1)) > 0
+        own = cv2.dilate((magenta_level(control) > TRACE_LEVEL).astype(np.uint8), _disk(1)) > 0
         outside &= ~own
     ghost = 1000 * float((outside & (level > TRACE_LEVEL)).sum()) / area
     tear = 1000 * float((inside & (level < 127.5)).sum()) / area
@@ -163,25 +180,38 @@ def boundary_scores(frame: np.ndarray, alpha: np.ndarray, control: np.ndarray | 
     return ghost, tear, edge_error
 
 
+def fill_psnr(frame: np.ndarray, truth: np.ndarray, alpha: np.ndarray) -> float:
+    """PSNR (dB) of frame against truth outside the silhouette's visible trace and within
+    FILL_BAND_PX of it."""
+    any_trace = (alpha > TRACE_LEVEL / 255).astype(np.uint8)
+    outside = cv2.dilate(any_trace, _disk(OUTSIDE_PX)) == 0
+    band = outside & (cv2.dilate(any_trace, _disk(FILL_BAND_PX)) > 0)
+    error = frame.astype(np.float32)[band] - truth.astype(np.float32)[band]
+    return float(10 * np.log10(255.0 ** 2 / max(float(np.mean(error ** 2)), 1e-6)))
+
+
 def measure(scene: LayeredScene, preset: Preset, times=TIMES) -> list[tuple[float, ...]]:
-    """Scores per time for one layered scene, rendered through the whole pipeline."""
-    photo = read_image(scene.photo_path)
+    """(ghost, tear, edge error, ghost not photo, fill PSNR) per time for one layered scene,
+    rendered through the whole pipeline."""
     options = ClipOptions(threads=1, cache_depth=False)
-    prepared = prepare_scene(photo, scene.photo_path, preset, options, {}, plan=scene.plan)
-    assert prepared.depth_backend == "file", prepared.depth_backend
-    control_path = scene.photo_path.with_name(
-        scene.photo_path.name.replace("cutout_", "control_", 1))
-    control = prepare_scene(read_image(control_path), control_path, preset, options, {},
-                            plan=scene.plan)
+
+    def prepared(prefix: str):
+        path = scene.photo_path.with_name(scene.photo_path.name.replace("cutout_", prefix, 1))
+        ready = prepare_scene(read_image(path), path, preset, options, {}, plan=scene.plan)
+        assert ready.depth_backend == "file", ready.depth_backend
+        return ready
+
+    cutout, control, truth = (prepared(prefix) for prefix in ("cutout_", "control_", "truth_"))
     rows = []
     for t in times:
-        frame = frame_at(prepared, preset, t)
+        frame = frame_at(cutout, preset, t)
         if SAVE_FRAMES:
             cv2.imwrite(str(SAVE_FRAMES / f"{scene.photo_path.stem}_{t:.2f}.png"),
                         cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
         alpha = true_alpha(scene, t, preset.width_px, preset.height_px)
         rows.append((*boundary_scores(frame, alpha),
-                     boundary_scores(frame, alpha, frame_at(control, preset, t))[0]))
+                     boundary_scores(frame, alpha, frame_at(control, preset, t))[0],
+                     fill_psnr(frame, frame_at(truth, preset, t), alpha)))
     return rows
 
 
@@ -193,15 +223,15 @@ def main() -> None:
     args = parser.parse_args()
     preset = load_preset("slideshow")
     print(f"{'photo':<34}{'t':>5}{'ghost/1000':>12}{'tear/1000':>11}{'edge err':>10}"
-          f"{'ghost not photo':>17}")
+          f"{'ghost not photo':>17}{'fill PSNR':>11}")
     with tempfile.TemporaryDirectory() as folder:
         for name in args.photos:
             scene = build_scene(SHARED / "photos" / name, Path(folder),
                                 map_long_side_px=args.map_long_side)
-            for t, (ghost, tear, edge, excess) in zip(TIMES, measure(scene, preset),
-                                                      strict=True):
+            for t, (ghost, tear, edge, excess, fill) in zip(TIMES, measure(scene, preset),
+                                                            strict=True):
                 print(f"{Path(name).stem[:33]:<34}{t:>5.2f}{ghost:>12.2f}{tear:>11.2f}"
-                      f"{edge:>10.3f}{excess:>17.2f}")
+                      f"{edge:>10.3f}{excess:>17.2f}{fill:>11.2f}")
 
 
 if __name__ == "__main__":

@@ -272,7 +272,7 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
     terminal = [descriptor for descriptor in (1, 2) if os.isatty(descriptor)]
 
     def request(number: int, _frame: object) -> None:
-        stop["by"] = signal.Signals(number).name
+        stop.setdefault("by", signal.Signals(number).name)  # the first reason is the one
         if number == signal.SIGHUP:
             _away_from(terminal)
 
@@ -421,8 +421,10 @@ def run_folder(
                 continue
             yield job
 
-    try:
-        with stop_on_sigterm(stop):
+    # held through the clean-up too: a SIGTERM right after a Ctrl-C (a supervisor stopping
+    # the job, a second key) killed the run half cleaned up, with no report
+    with stop_on_sigterm(stop):
+        try:
             for job in journal.jobs("running"):  # a run that was killed or interrupted
                 journal.finish(Path(job.source), "queued", 0.0, "interrupted")
             with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
@@ -430,39 +432,40 @@ def run_folder(
                 for job, result in rendered:
                     results.append(finish_job(journal, job, result))
                     bar.update()
-                    if results[-1].status == "no_space":  # the photos after it would fail too
+                    if results[-1].status == "no_space":  # the photos after would fail too
                         stop["by"] = DISK_FULL
                     if fail_fast and results[-1].status == "failed":
                         break
-    except KeyboardInterrupt:
-        stop["by"] = "SIGINT"
-        raise
-    finally:
-        bar.close()
-        with contextlib.suppress(JournalError):
-            for job in journal.jobs("running"):
-                why = f"interrupted by {stop.get('by', 'an error')}"
-                journal.finish(Path(job.source), "queued", 0.0, why)
-                results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
-        journal.close()
-        # the folder as it is found again: 'photos/../out' named no folder a user would look in
-        # (every photo of a run through has a result; --fail-fast and stops leave some)
-        seen = {result.source for result in results}
-        not_started = [str(photo_key(photo)) for photo in scan.photos
-                       if str(photo_key(photo)) not in seen]
-        report = RunReport(str(folder_key(folder)), str(output_folder), preset.name,
-                           results, notes, stop.get("by"), options.device, providers_used(),
-                           started_at, utc_now(), not_started)
-        if folder_identity(output_folder) != identity:  # not made again: the user's doing
+        except KeyboardInterrupt:
+            stop["by"] = "SIGINT"
+            raise
+        finally:
+            bar.close()
+            with contextlib.suppress(JournalError):
+                for job in journal.jobs("running"):
+                    why = f"interrupted by {stop.get('by', 'an error')}"
+                    journal.finish(Path(job.source), "queued", 0.0, why)
+                    results.append(ClipResult(job.source, None, "interrupted", 0.0, error=why))
+            journal.close()
+            # the folder as it is found again: 'photos/../out' named no folder a user would
+            # look in (every photo of a run through has a result; --fail-fast and stops
+            # leave some)
+            seen = {result.source for result in results}
+            not_started = [str(photo_key(photo)) for photo in scan.photos
+                           if str(photo_key(photo)) not in seen]
+            report = RunReport(str(folder_key(folder)), str(output_folder), preset.name,
+                               results, notes, stop.get("by"), options.device, providers_used(),
+                               started_at, utc_now(), not_started)
+            if folder_identity(output_folder) != identity:  # not made again: the user's doing
+                lock.release()
+                raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
+                                        "stopped there (the clips made before are where the "
+                                        "folder went)")
+            report.unwritten = report.write(output_folder)
+            if report.unwritten:  # the one written at the start: the run never finished
+                with contextlib.suppress(OSError):
+                    (output_folder / REPORT_NAME).unlink()
             lock.release()
-            raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
-                                    "stopped there (the clips made before are where the "
-                                    "folder went)")
-        report.unwritten = report.write(output_folder)
-        if report.unwritten:  # the one written at the start would say the run never finished
-            with contextlib.suppress(OSError):
-                (output_folder / REPORT_NAME).unlink()
-        lock.release()
     return report
 
 

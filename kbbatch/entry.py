@@ -16,16 +16,30 @@ EXIT_INTERRUPTED = 130
 def main() -> None:
     try:
         status = _run()
-    except SystemExit:  # said and settled (an interrupt the command caught included)
+    except SystemExit as exit_:  # said and settled (an interrupt the command caught included)
         _forget_uncaught_interrupt()
+        if exit_.code == EXIT_INTERRUPTED:
+            _stopped_already()
         raise
     except BaseException as error:
         if not interrupted(error):
             raise
         print("\ninterrupted: nothing partial is left; run again to finish", file=sys.stderr)
         _forget_uncaught_interrupt()
+        _stopped_already()
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(status if isinstance(status, int) else 0)
+
+
+def _stopped_already() -> None:
+    """The run is stopped and cleaned up: a SIGTERM or hang-up while the interpreter shuts
+    down (a supervisor's SIGTERM a moment after the Ctrl-C) is ignored, so the status is 130,
+    not death by the signal (-15: as if the stop had not finished). Ignored, not handled:
+    CPython puts handled signals back to their default action as it finalises."""
+    import signal
+
+    for number in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(number, signal.SIG_IGN)
 
 
 def _forget_uncaught_interrupt() -> None:

@@ -15,7 +15,7 @@ PHOTO = SHARED / "photos" / "33_landscape_sign_in_field.jpg"
 def test_cutout_colour_is_not_left_behind_at_the_end_view(tmp_path):
     scene = build_scene(PHOTO, tmp_path)
     preset = with_overrides(load_preset("preview"), width_px=960, height_px=540)
-    (start_ghost, start_tear, _, _), (end_ghost, end_tear, _, end_excess) = measure(
+    (start_ghost, start_tear, *_), (end_ghost, end_tear, _, end_excess, _) = measure(
         scene, preset, (0.0, 1.0))
     # The hard z-buffered cloud of before left 250 magenta pixels per 1000 of the silhouette
     # beside it at the end view (and 28 at the start); the soft layers leave about a quarter.

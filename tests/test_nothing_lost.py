@@ -703,6 +703,25 @@ def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
     assert "1 photo(s) not started: run again to finish" in status.stdout, status.stdout
 
 
+@pytest.mark.slow
+def test_a_sigterm_just_after_ctrl_c_does_not_cut_the_stop_short(tmp_path):
+    """A supervisor's SIGTERM (or a second key) 0.05 to 0.2 s after a Ctrl-C killed the
+    batch by the signal (status -15) while it cleaned up or shut down."""
+    for delay_s in (0.05, 0.1, 0.2):
+        folder, out = slow_folder(tmp_path / str(delay_s)), tmp_path / str(delay_s) / "out"
+
+        def interrupt_then_terminate(batch: subprocess.Popen) -> None:
+            batch.send_signal(signal.SIGINT)
+            time.sleep(delay_s)  # noqa: B023 - used at once, inside the loop
+            batch.send_signal(signal.SIGTERM)
+
+        returncode, stderr = act_while_encoding(folder, out, 6, interrupt_then_terminate)
+        assert returncode == 130, (delay_s, returncode, stderr)
+        assert not list(out.glob(".*part*")), "a partial clip was left"
+        report = json.loads((out / "kbbatch-report.json").read_text())
+        assert report["finished_at"] and report["stopped_by"] == "SIGINT", (delay_s, report)
+
+
 def _interrupt_a_library_turned_into_an_import_error():
     """What onnxruntime does with a Ctrl-C that lands while its compiled module loads."""
     try:
