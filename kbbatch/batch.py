@@ -528,7 +528,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
         adopted = journal.adopt_marked_clip(source, fingerprint, settings, content,
-                                            output_folder / preferred)
+                                            output_folder, preferred)
         previous = journal.job_of(source, content)
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name

@@ -12,6 +12,7 @@ import contextlib
 import os
 import sqlite3
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from urllib.parse import quote_from_bytes, unquote_to_bytes
@@ -338,32 +339,41 @@ class Journal:
 
     @_guarded
     def adopt_marked_clip(self, source: Path, fingerprint: str, settings: tuple[str, ...],
-                          content: str, output: Path) -> bool:
-        """Record as done a clip of this photo's bytes and one of these settings, at the name
-        it would be given, that the journal knows nothing of (the journal deleted, the folder
-        copied without it): kbbatch's by the mark in the file (encode.clip_mark). It was taken
-        for a file of the user's, and every clip was made again beside itself under a content
-        name. A file without the mark, or another photo's or settings', is left as it was."""
+                          content: str, folder: Path, preferred: str) -> str | None:
+        """Record as done a clip of this photo's bytes and one of these settings, at a name
+        clip_name gives it (preferred, or a content name beside another's clip or a file of
+        the user's), that the journal knows nothing of (the journal deleted, the folder
+        copied without it): kbbatch's by the mark in the file (encode.clip_mark); its name,
+        or None. It was taken for a file of the user's, and every clip was made again beside
+        itself under a content name. A file without the mark, or another photo's or
+        settings', is left as it was."""
         from kbbatch.encode import is_whole_clip, read_clip_mark
 
-        if self.job_of(source, content) is not None or self.owners(output.name):
-            return False
-        mark = read_clip_mark(output)
-        if mark is None or mark[0] != content or mark[1] not in settings:
-            return False
-        try:
-            clip = source_fingerprint(output)
-        except OSError:  # deleted meanwhile
-            return False
-        if not is_whole_clip(output):  # a copy that stopped keeps the mark at its start
-            return False
-        self.connection.execute(
-            "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output, error,"
-            " attempts, seconds, updated, content, clip)"
-            " VALUES (?, ?, ?, 'done', ?, NULL, ?, 0, ?, ?, ?)",
-            (_stored(source), fingerprint, mark[1], _stored(output.name), ADOPTED_ATTEMPTS,
-             time.time(), content, clip))
-        return True
+        if self.job_of(source, content) is not None:
+            return None
+        for name in self._names(source, content, preferred):
+            output = folder / name
+            if not os.path.lexists(output):
+                return None  # clip_name gives no name past the first free one
+            if self.owners(name):
+                continue
+            mark = read_clip_mark(output)
+            if mark is None or mark[0] != content or mark[1] not in settings:
+                continue
+            try:
+                clip = source_fingerprint(output)
+            except OSError:  # deleted meanwhile
+                return None
+            if not is_whole_clip(output):  # a copy that stopped keeps the mark at its start
+                continue
+            self.connection.execute(
+                "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output,"
+                " error, attempts, seconds, updated, content, clip)"
+                " VALUES (?, ?, ?, 'done', ?, NULL, ?, 0, ?, ?, ?)",
+                (_stored(source), fingerprint, mark[1], _stored(name), ADOPTED_ATTEMPTS,
+                 time.time(), content, clip))
+            return name
+        return None
 
     def name_to_make(self, source: Path, content: str, preferred: str, folder: Path,
                      with_depth_images: bool, name: str) -> str:
@@ -408,7 +418,7 @@ class Journal:
         beside it (`--save-depth`); then the photo's stem and the start of its sha256. One
         rule for the batch and the daemon, so no clip of one photo ever replaces a clip of
         another, nor a file of the user's, and an edited photo replaces its own."""
-        from kbbatch.images import depth_image_names, fitted_name
+        from kbbatch.images import depth_image_names
 
         def free(name: str) -> bool:
             companions = depth_image_names(name) if with_depth_images else ()
@@ -426,17 +436,22 @@ class Journal:
                 and Path(job.output).suffix == Path(preferred).suffix \
                 and self._is_free(job.output, source, content, folder, ()):
             return job.output
-        if free(preferred):
-            return preferred
         # A content name is checked too: kept through an edit, it may hold a clip of other
         # bytes than its digest says (the edited photo's), which the original, imported
         # again, must not replace.
+        return next(name for name in self._names(source, content, preferred) if free(name))
+
+    @staticmethod
+    def _names(source: Path, content: str, preferred: str) -> Iterator[str]:
+        """The names clip_name tries, in turn: preferred, then the photo's stem with the start
+        of its sha256 (and a number, from the second)."""
+        from kbbatch.images import fitted_name
+
+        yield preferred
         number = 1
         while True:
             tail = f".{content[:CONTENT_NAME_HEX]}" + (f".{number}" if number > 1 else "")
-            name = fitted_name(Path(source).stem, tail + Path(preferred).suffix)
-            if free(name):
-                return name
+            yield fitted_name(Path(source).stem, tail + Path(preferred).suffix)
             number += 1
 
     def _is_free(self, name: str, source: Path, content: str, folder: Path,

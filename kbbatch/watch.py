@@ -475,8 +475,8 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
-            self.journal.adopt_marked_clip(path, fingerprint, settings, content,
-                                           s.outbox / preferred)
+            self.journal.adopt_marked_clip(path, fingerprint, settings, content, s.outbox,
+                                           preferred)
             previous = self.journal.job_of(path, content)
             name = self.journal.clip_name(path, content, preferred, s.outbox, options.save_depth)
             if previous is not None and previous.output == name:

@@ -1499,6 +1499,16 @@ def test_clips_whose_journal_was_deleted_are_known_by_their_mark_not_made_again(
     again = run_folder(folder, out, quick_preset, FAST, False)
     assert [r.status for r in again.results] == ["skipped"] * 3
     assert not any(r.note for r in again.results)
+    # The journal lost once more: the clips under content names are known too (p1's and p2's
+    # were made again beside themselves, under a second content name).
+    named = {Path(r.source).name: Path(r.output).name for r in again.results}
+    for journal_file in out.glob(JOURNAL_NAME + "*"):
+        journal_file.unlink()
+    again = run_folder(folder, out, quick_preset, FAST, False)
+    assert [r.status for r in again.results] == ["skipped"] * 3
+    assert {Path(r.source).name: Path(r.output).name for r in again.results} == named
+    assert named["p1.jpg"] != "p1.mp4" and "made by kbbatch" in again.results[1].note
+    assert len(visible_clips(out)) == 5
     # Other settings: the clip is not up to date. Without the journal's record of its size,
     # an edit of it saved in place (which may keep its metadata) cannot be told from it: it
     # is kept, and the new clip made beside it.
