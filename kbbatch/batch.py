@@ -257,10 +257,12 @@ def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
 
 
 @contextlib.contextmanager
-def stop_on_sigterm(stop: dict) -> Iterator[None]:
+def stop_signals(stop: dict) -> Iterator[None]:
     """SIGTERM asks the batch to stop after the clip in progress, as it asks the daemon; so
     does a hang-up (SIGHUP: the SSH session dropped), which killed the batch at once, with
-    no report."""
+    no report. Ctrl-C stops it at once (KeyboardInterrupt); pressed again while that stop is
+    cleaned up, it is not raised again: pressing it three times left the report unfinished
+    and the process killed by the signal."""
     import signal
     import threading
 
@@ -276,10 +278,19 @@ def stop_on_sigterm(stop: dict) -> Iterator[None]:
         if number == signal.SIGHUP:
             _away_from(terminal)
 
-    stopping = [signal.SIGTERM]
+    interrupted: list[bool] = []
+
+    def interrupt(_number: int, _frame: object) -> None:
+        if not interrupted:
+            interrupted.append(True)
+            raise KeyboardInterrupt
+
+    handlers = {signal.SIGTERM: request}
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup kbbatch ...`: ignored
-        stopping.append(signal.SIGHUP)
-    previous = {number: signal.signal(number, request) for number in stopping}
+        handlers[signal.SIGHUP] = request
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        handlers[signal.SIGINT] = interrupt
+    previous = {number: signal.signal(number, handler) for number, handler in handlers.items()}
     try:
         yield
     finally:
@@ -422,8 +433,8 @@ def run_folder(
             yield job
 
     # held through the clean-up too: a SIGTERM right after a Ctrl-C (a supervisor stopping
-    # the job, a second key) killed the run half cleaned up, with no report
-    with stop_on_sigterm(stop):
+    # the job) killed the run half cleaned up, with no report
+    with stop_signals(stop):
         try:
             for job in journal.jobs("running"):  # a run that was killed or interrupted
                 journal.finish(Path(job.source), "queued", 0.0, "interrupted")

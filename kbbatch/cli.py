@@ -19,6 +19,7 @@ from kbbatch.batch import (
     CORES_PER_JOB,
     DISK_FULL,
     MEMORY_PER_JOB_GIB,
+    REPORT_NAME,
     EmptyFolderError,
     RunReport,
     default_jobs,
@@ -44,6 +45,7 @@ from kbbatch.presets import (
     with_overrides,
 )
 from kbbatch.ray_executor import RayExecutor, RayUnavailableError, import_ray
+from kbbatch.streams import stdout_lost
 
 JOBS_PER_CORE_MAX = 4
 """More local worker processes (or render threads) than this per core only thrash: --jobs 100000
@@ -273,7 +275,11 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
     except KeyboardInterrupt:
         click.echo("\ninterrupted: no partial clip is left; run again to finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
-    _print_summary(report)
+    try:
+        _print_summary(report)
+    except OSError as error:  # the clips and the report are made: said, not failed
+        click.echo(f"NOTE the summary could not be printed ({stdout_lost(error)}); the run "
+                   f"report has it: {Path(report.output_folder) / REPORT_NAME}", err=True)
     if report.unwritten:  # the clips are made, but whoever reads the report is not told
         click.echo(f"Error: {report.unwritten}", err=True)
     if report.stopped_by == DISK_FULL:

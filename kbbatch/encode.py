@@ -5,6 +5,7 @@ The ffmpeg binary is the one on PATH, else the one shipped in the imageio-ffmpeg
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import os
@@ -287,11 +288,15 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset,
                 expected = (preset.height_px, preset.width_px, 3)
                 raise EncodeError(f"frame {count} has shape {frame.shape} {frame.dtype}, "
                                   f"expected {expected} uint8")
-            process.stdin.write(np.ascontiguousarray(frame).data)
+            # ffmpeg ended early: its status and stderr say why (a broken pipe raised while
+            # the frames were made is not its: caught here, the encoder was left waiting)
+            try:
+                process.stdin.write(np.ascontiguousarray(frame).data)
+            except BrokenPipeError:
+                break
             count += 1
-        process.stdin.close()
-    except BrokenPipeError:
-        pass
+        with contextlib.suppress(BrokenPipeError):
+            process.stdin.close()
     except BaseException:
         process.kill()
         process.wait()

@@ -8,12 +8,14 @@ from __future__ import annotations
 import sys
 
 from kbbatch.interrupts import interrupted
+from kbbatch.streams import standard_streams_ready
 
 EXIT_INTERRUPTED = 130
 """Exit status of a run stopped by Ctrl-C or SIGTERM before it was through."""
 
 
 def main() -> None:
+    standard_streams_ready()
     try:
         status = _run()
     except SystemExit as exit_:  # said and settled (an interrupt the command caught included)
@@ -32,13 +34,14 @@ def main() -> None:
 
 
 def _stopped_already() -> None:
-    """The run is stopped and cleaned up: a SIGTERM or hang-up while the interpreter shuts
-    down (a supervisor's SIGTERM a moment after the Ctrl-C) is ignored, so the status is 130,
-    not death by the signal (-15: as if the stop had not finished). Ignored, not handled:
-    CPython puts handled signals back to their default action as it finalises."""
+    """The run is stopped and cleaned up: a SIGTERM, hang-up or another Ctrl-C while the
+    interpreter shuts down (a supervisor's SIGTERM a moment after the Ctrl-C, a key pressed
+    again) is ignored, so the status is 130, not death by the signal (as if the stop had not
+    finished). Ignored, not handled: CPython puts handled signals back to their default
+    action as it finalises."""
     import signal
 
-    for number in (signal.SIGTERM, signal.SIGHUP):
+    for number in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(number, signal.SIG_IGN)
 
 
