@@ -162,8 +162,8 @@ PHOTO_LOG = PhotoLogFilter()
 def _worker_init(jobs: int = 1) -> None:
     """Workers leave signals to the daemon and die with it (no orphan finishing a clip)."""
     models.share_cores(jobs)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(number, signal.SIG_IGN)
     for handler in logging.getLogger().handlers:
         handler.addFilter(PHOTO_LOG)
     # Not on Linux: a killed daemon's worker may finish its clip; recovery copes with that.
@@ -844,6 +844,10 @@ class Daemon:
         jobs.recover()
         signal.signal(signal.SIGTERM, self.request_stop)
         signal.signal(signal.SIGINT, self.request_stop)
+        # a hang-up (the SSH session it was started from dropped) stops it as SIGTERM does:
+        # it killed the daemon at once, a partial clip left and nothing logged
+        if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup`: ignored
+            signal.signal(signal.SIGHUP, self.request_stop)
         observer = start_observer(s.inbox, s.poll, self.inbox.notice, self.inbox.notice_removal)
         for path in sorted(s.inbox.iterdir()):
             self.inbox.notice(path)

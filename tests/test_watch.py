@@ -42,12 +42,12 @@ encoder_preset = "ultrafast"
 
 
 def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str,
-                 log_path: Path | None = None) -> subprocess.Popen:
+                 log_path: Path | None = None, preexec_fn=None) -> subprocess.Popen:
     command = [sys.executable, "-m", "kbbatch", "watch", str(inbox), "--out", str(outbox),
                "--preset", str(preset), "--settle", "1", "--depth", "ramp", "--planner",
                "center", *extra]
     log = open(log_path or outbox.parent / "daemon.log", "ab")  # noqa: SIM115 - the child keeps it open
-    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, preexec_fn=preexec_fn)
 
 
 def clips_in(folder: Path) -> list[str]:
@@ -215,6 +215,33 @@ def test_sigterm_exits_zero_and_slow_writes_wait_until_complete(tmp_path):
         assert (outbox / "slow.mp4").is_file()
     finally:
         assert stop(daemon) == 0
+
+
+def test_a_hang_up_stops_the_daemon_as_sigterm_does(tmp_path):
+    """SIGHUP (the SSH session it was started from dropped) killed the daemon at once: a
+    partial clip left behind, the job left running and nothing logged."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    daemon = start_daemon(inbox, outbox, preset_file(tmp_path, 6.0, fps=25.0),
+                          preexec_fn=_hang_ups_heard)
+    try:
+        time.sleep(1.5)
+        shutil.copy(shared_photos(1)[0], inbox / "a.jpg")
+        wait_for(lambda: list(outbox.glob(".*.part*")), 120, "a clip being encoded")
+        daemon.send_signal(signal.SIGHUP)
+        assert daemon.wait(timeout=120) == 0
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+    assert clips_in(outbox) == ["a.mp4"] and not list(outbox.glob(".*part*"))
+    assert "stopping" in (tmp_path / "daemon.log").read_text()
+
+
+def _hang_ups_heard() -> None:
+    """In the daemon: SIGHUP as a terminal's process has it (a test run under nohup, as a CI
+    job may be, ignores it, and the daemon keeps it so)."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed(tmp_path):
