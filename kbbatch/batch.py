@@ -450,6 +450,9 @@ def run_folder(
         except KeyboardInterrupt:
             stop["by"] = "SIGINT"
             raise
+        except BaseException as error:  # a crash: the report must not read as --fail-fast
+            stop.setdefault("by", f"an error ({type(error).__name__})")
+            raise
         finally:
             bar.close()
             with contextlib.suppress(JournalError):

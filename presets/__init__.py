@@ -115,6 +115,11 @@ PRESET_BASES_MAX = 16
 stack with a traceback)."""
 
 
+PRESET_BYTES_MAX = 1 << 20
+"""Largest preset file read (a preset is a few hundred bytes): a 3 GB file given by mistake
+took the memory of the whole batch (MemoryError) before it could be refused."""
+
+
 def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
           ) -> tuple[dict[str, Any], str]:
     """The settings of a preset file with its bases applied (not yet complete-checked)."""
@@ -132,6 +137,9 @@ def _read(name_or_path: str, relative_to: Path | None, chain: tuple[str, ...]
                       else "preset file not found")
             raise PresetError(f"{path}: {reason}")
         try:
+            if path.stat().st_size > PRESET_BYTES_MAX:
+                raise PresetError(f"{path}: is larger than any preset (over "
+                                  f"{PRESET_BYTES_MAX >> 10} KiB); not read")
             text = path.read_text(encoding="utf-8-sig")  # a BOM, as manifests allow
         except UnicodeDecodeError as error:
             raise PresetError(f"{path}: not a UTF-8 text file (byte {error.start}); TOML "

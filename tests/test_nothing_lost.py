@@ -722,6 +722,31 @@ def test_a_sigterm_just_after_ctrl_c_does_not_cut_the_stop_short(tmp_path):
         assert report["finished_at"] and report["stopped_by"] == "SIGINT", (delay_s, report)
 
 
+def test_a_batch_that_crashed_is_not_reported_as_stopped_by_fail_fast(
+        tmp_path, monkeypatch, quick_preset):
+    """An unexpected error (a MemoryError, say) ends the batch with its traceback; the report
+    it leaves named no reason, with photos not started, which `kbbatch status` read as
+    "ended at its first failure (--fail-fast)", an option never given."""
+    from kbbatch import batch
+    from kbbatch.batch import last_run_lines
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    for index in range(3):
+        photo(folder / f"p{index}.jpg", seed=index)
+    finish = batch.finish_job
+
+    def crash_after_the_first(journal, job, result):
+        if job.source.name != "p0.jpg":
+            raise MemoryError
+        return finish(journal, job, result)
+
+    monkeypatch.setattr(batch, "finish_job", crash_after_the_first)
+    with pytest.raises(MemoryError):
+        run_folder(folder, out, quick_preset, FAST, False)
+    [line] = last_run_lines(out)
+    assert "stopped by an error (MemoryError)" in line and "--fail-fast" not in line, line
+
+
 def _interrupt_a_library_turned_into_an_import_error():
     """What onnxruntime does with a Ctrl-C that lands while its compiled module loads."""
     try:

@@ -222,3 +222,12 @@ def test_a_base_loop_through_dot_dot_and_a_long_chain_are_refused_by_name(tmp_pa
     with pytest.raises(PresetError, match="more than 16 bases deep"):
         load_preset(str(tmp_path / "c0.toml"))
     assert load_preset(str(tmp_path / "c30.toml")).width_px == 640  # ten deep: fine
+
+
+def test_a_huge_file_given_as_a_preset_is_refused_unread(tmp_path):
+    """A 3 GB file given as a preset was read whole: a MemoryError ended the batch."""
+    huge = tmp_path / "huge.toml"
+    with huge.open("wb") as handle:
+        handle.truncate(3 << 30)  # sparse: no disk space taken
+    with pytest.raises(PresetError, match=r"huge.toml: is larger than any preset"):
+        load_preset(str(huge))
