@@ -575,7 +575,8 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         result.status = "failed"
         result.error = (f"{job.source}: changed while its clip was made (saved again during "
                         "the run?); run again to make it from the photo as it is then")
-    named = clip_name_note(job.source, job.preferred, job.output.name) if job.preferred else None
+    named = (clip_name_note(job.source, job.output.parent, job.preferred, job.output.name,
+                            job.content) if job.preferred else None)
     replaced = (replaced_clip_note(job.source, job.output.name)
                 if job.replaces_other_bytes and result.status == "done" else None)
     result.note = joined_notes(named, result.note, replaced)

@@ -81,8 +81,19 @@ def replaced_clip_note(source: Path, name: str) -> str:
             "photo saved under the name of another is taken for an edit of it)")
 
 
-def clip_name_note(source: Path, preferred: str, name: str) -> str | None:
+def clip_name_note(source: Path, folder: Path, preferred: str, name: str, content: str
+                   ) -> str | None:
+    """Said when a clip is not named preferred: what holds that name. A clip of this photo
+    with other settings, known by its mark once the journal was lost, is kept (it cannot be
+    told from an edit of it saved in place): it was said to be another photo's."""
+    from kbbatch.encode import read_clip_mark
+
     if name == preferred:
         return None
+    mark = read_clip_mark(folder / preferred)
+    if mark is not None and mark[0] == content:
+        return (f"{source.name}: {preferred}, its clip of other settings, is kept (without "
+                "the journal that knew it, it cannot be told from an edit of it saved in "
+                f"place); this one is named by its content: {name}")
     return (f"{source.name}: {preferred} (or a depth map beside it) is another photo's or a "
             f"file kbbatch did not write; this one is named by its content: {name}")

@@ -1543,3 +1543,5 @@ def test_clips_whose_journal_was_deleted_are_known_by_their_mark_not_made_again(
     [p0] = [r for r in report.results if Path(r.source).name == "p0.jpg"]
     assert p0.status == "done" and Path(p0.output).name.startswith("p0.")
     assert (out / "p0.mp4").read_bytes() == made["p0.mp4"]
+    # said as what it is, not as another photo's or a file of the user's
+    assert "p0.mp4, its clip of other settings, is kept" in p0.note, p0.note
