@@ -561,8 +561,10 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
                           error=f"{source}: {error}", full_folder=str(output_folder))
     replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
     kept = previous is not None and previous.output == name  # its own name: nothing to note
-    return ClipJob(source, output, entry, "" if kept else preferred,
-                   replaces_other_bytes=replaces, content=content)
+    name_note = None if kept else clip_name_note(source, output_folder, preferred, name,
+                                                  content, settings)
+    return ClipJob(source, output, entry, name_note, replaces_other_bytes=replaces,
+                   content=content)
 
 
 def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
@@ -575,11 +577,9 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         result.status = "failed"
         result.error = (f"{job.source}: changed while its clip was made (saved again during "
                         "the run?); run again to make it from the photo as it is then")
-    named = (clip_name_note(job.source, job.output.parent, job.preferred, job.output.name,
-                            job.content) if job.preferred else None)
     replaced = (replaced_clip_note(job.source, job.output.name)
                 if job.replaces_other_bytes and result.status == "done" else None)
-    result.note = joined_notes(named, result.note, replaced)
+    result.note = joined_notes(job.name_note, result.note, replaced)
     try:
         clip = source_fingerprint(job.output) if result.status == "done" else None
         # an interrupted clip is queued again, as one whose run was stopped, and so is one its

@@ -81,17 +81,18 @@ def replaced_clip_note(source: Path, name: str) -> str:
             "photo saved under the name of another is taken for an edit of it)")
 
 
-def clip_name_note(source: Path, folder: Path, preferred: str, name: str, content: str
-                   ) -> str | None:
+def clip_name_note(source: Path, folder: Path, preferred: str, name: str, content: str,
+                   settings: tuple[str, ...]) -> str | None:
     """Said when a clip is not named preferred: what holds that name. A clip of this photo
     with other settings, known by its mark once the journal was lost, is kept (it cannot be
-    told from an edit of it saved in place): it was said to be another photo's."""
+    told from an edit of it saved in place): it was said to be another photo's. (An edit the
+    journal tells from its clip keeps the mark of these settings: a file of the user's.)"""
     from kbbatch.encode import read_clip_mark
 
     if name == preferred:
         return None
     mark = read_clip_mark(folder / preferred)
-    if mark is not None and mark[0] == content:
+    if mark is not None and mark[0] == content and mark[1] not in settings:
         return (f"{source.name}: {preferred}, its clip of other settings, is kept (without "
                 "the journal that knew it, it cannot be told from an edit of it saved in "
                 f"place); this one is named by its content: {name}")

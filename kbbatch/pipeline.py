@@ -806,7 +806,7 @@ class ClipJob:
     source: Path
     output: Path
     entry: ManifestEntry | None = None
-    preferred: str = ""  # the name the naming rule wanted (output differs where it was taken)
+    name_note: str | None = None  # why output is not the name the naming rule wanted
     replaces_other_bytes: bool = False  # output holds a clip of this photo's earlier bytes
     content: str = ""  # sha256 of the photo's bytes when the job was started
 

@@ -493,7 +493,7 @@ class JobRunner:
             output = s.outbox / name
             self.journal.start(path, fingerprint, settings[0], name, content)
             inbox.forget(path)
-            note = clip_name_note(path, s.outbox, preferred, name, content)
+            note = clip_name_note(path, s.outbox, preferred, name, content, settings)
             if note is not None:
                 log.warning("%s", note)
             replaces = (previous is not None

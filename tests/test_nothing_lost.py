@@ -259,7 +259,7 @@ def test_ray_driver_never_writes_a_workers_map_over_the_users_file(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "IMG_1.disparity.png").write_bytes(b"the user's own map")
-    job = ClipJob(photo(tmp_path / "in" / "IMG_1.jpg", seed=1), out / "IMG_1.mp4", None, "")
+    job = ClipJob(photo(tmp_path / "in" / "IMG_1.jpg", seed=1), out / "IMG_1.mp4", None)
     files = {"IMG_1.mp4": b"clip", "IMG_1.disparity.png": b"map",
              "IMG_1.depth-preview.png": b"picture"}
     outcome = WorkerOutcome(ClipResult(str(job.source), "x", "done", 1.0), files, "node", 1)

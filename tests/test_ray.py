@@ -479,7 +479,7 @@ def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_se
             return "ref"
 
     options = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"))
-    job = ClipJob(tmp_path / "a.jpg", tmp_path / "out" / "a.mp4", entry, "a.mp4")
+    job = ClipJob(tmp_path / "a.jpg", tmp_path / "out" / "a.mp4", entry)
     RayExecutor().submit(RemoteClip(), job, load_preset("slideshow"), options)
     [(payload, preset, worker_options)] = sent
     assert (preset.width_px, preset.duration_s) == (256, 0.3)
