@@ -261,3 +261,22 @@ def test_a_map_smaller_than_the_photo_is_refined_onto_its_colour_edges(tmp_path)
     assert near == pytest.approx(1 / 1000, rel=0.05) and far == pytest.approx(1 / 5000, rel=0.05)
     assert int(np.argmax(row > 0.5 * (near + far))) == 181
     assert not ((row > far * 1.01) & (row < near * 0.99)).any(), "no depth between the sides"
+
+
+def test_a_map_name_that_is_no_regular_file_is_said_not_passed_over(tmp_path, caplog):
+    """A named pipe or a link to /dev/zero under the photo's map name was passed over without
+    a word: the clip was made with the pop-up depth, and nobody knew why."""
+    import logging
+
+    from kbbatch.depth.file import find_depth_file
+
+    for stem, make in (("piped", lambda path: os.mkfifo(path)),
+                       ("linked", lambda path: path.symlink_to("/dev/zero"))):
+        photo = tmp_path / f"{stem}.jpg"
+        Image.fromarray(textured_image(60, 80, seed=1)).save(photo)
+        make(tmp_path / f"{stem}.depth.png")
+        with caplog.at_level(logging.WARNING):
+            assert find_depth_file(photo) is None
+            assert find_depth_file(photo) is None  # looked for again: said once
+        said = [r.getMessage() for r in caplog.records if f"{stem}.depth.png" in r.getMessage()]
+        assert len(said) == 1 and "not a regular file" in said[0], said

@@ -64,9 +64,21 @@ def find_depth_file(photo_path: Path) -> Path | None:
 
     for name in sorted(names, key=preference):
         candidate = photo_path.with_name(name)
-        if candidate.is_file() and not is_another_photos_map(candidate, photo_path):
+        if not candidate.is_file():
+            with contextlib.suppress(OSError):  # gone since the listing: nothing to say
+                _say_not_a_file(str(candidate), os.lstat(candidate).st_ino, str(photo_path))
+            continue
+        if not is_another_photos_map(candidate, photo_path):
             return candidate
     return None
+
+
+@functools.lru_cache(maxsize=64)
+def _say_not_a_file(map_name: str, _inode: int, photo_name: str) -> None:
+    """Said once per file: a named pipe, a folder or a link to a device under a map's name
+    was passed over without a word, and the clip made with another depth."""
+    log.warning("%s: not used as the depth map of %s: not a regular file (a named pipe, "
+                "device, folder, or a link to one or to nothing)", map_name, photo_name)
 
 
 def is_another_photos_map(map_path: Path, photo_path: Path) -> bool:
