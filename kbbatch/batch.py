@@ -256,15 +256,21 @@ def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
     return EmptyFolderError(f"{folder}: no photos here ({kinds}){where}; nothing was written")
 
 
+INTERRUPT_CAUGHT = "interrupt caught"
+"""Key of a run's stop requests: set once the run has caught a Ctrl-C and cleans up."""
+
+
 @contextlib.contextmanager
 def stop_signals(stop: dict) -> Iterator[None]:
     """SIGTERM asks the batch to stop after the clip in progress, as it asks the daemon; so
     does a hang-up (SIGHUP: the SSH session dropped), which killed the batch at once, with
-    no report. Ctrl-C stops it at once (KeyboardInterrupt); pressed again while that stop is
-    cleaned up, it is not raised again: pressing it three times left the report unfinished
-    and the process killed by the signal."""
+    no report. Ctrl-C stops it at once (KeyboardInterrupt); pressed again once the run has
+    caught it (stop[INTERRUPT_CAUGHT]) and cleans up, it is not raised again: pressing it
+    three times left the report unfinished and the process killed by the signal."""
     import signal
     import threading
+
+    from kbbatch.interrupts import deferred
 
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -278,11 +284,10 @@ def stop_signals(stop: dict) -> Iterator[None]:
         if number == signal.SIGHUP:
             _away_from(terminal)
 
-    interrupted: list[bool] = []
-
     def interrupt(_number: int, _frame: object) -> None:
-        if not interrupted:
-            interrupted.append(True)
+        # raised until the run has caught one: an interrupt lost on its way (a library that
+        # swallowed it) must not make the next ones vain
+        if not stop.get(INTERRUPT_CAUGHT) and not deferred():
             raise KeyboardInterrupt
 
     handlers = {signal.SIGTERM: request}
@@ -449,6 +454,7 @@ def run_folder(
                         break
         except KeyboardInterrupt:
             stop["by"] = "SIGINT"
+            stop[INTERRUPT_CAUGHT] = True
             raise
         except BaseException as error:  # a crash: the report must not read as --fail-fast
             stop.setdefault("by", f"an error ({type(error).__name__})")

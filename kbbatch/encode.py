@@ -21,6 +21,7 @@ from pathlib import Path
 import ffmpeg
 import numpy as np
 
+from kbbatch.interrupts import held
 from kbbatch.presets import Preset
 
 FFMPEG_STOP_MESSAGE = "Immediate exit requested"
@@ -276,13 +277,15 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset,
     comment: written into the clip's metadata (clip_mark)."""
     # Its own session: a stop signal sent to the whole process group (a shell, a supervisor)
     # is the runner's to act on; the runner then finishes or ends the clip itself.
-    process = subprocess.Popen(
-        encoder_command(path, preset, comment=comment), stdin=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        start_new_session=True,
-    )
+    process = None
     count = 0
     try:
+        with held():  # a Ctrl-C inside Popen would leave an encoder no one can stop
+            process = subprocess.Popen(
+                encoder_command(path, preset, comment=comment), stdin=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                start_new_session=True,
+            )
         for frame in frames:
             if frame.shape != (preset.height_px, preset.width_px, 3) or frame.dtype != np.uint8:
                 expected = (preset.height_px, preset.width_px, 3)
@@ -298,8 +301,9 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset,
         with contextlib.suppress(BrokenPipeError):
             process.stdin.close()
     except BaseException:
-        process.kill()
-        process.wait()
+        if process is not None:
+            process.kill()
+            process.wait()
         raise
     stderr = process.stderr.read().decode(errors="replace")
     status = process.wait()

@@ -255,3 +255,39 @@ def test_clips_are_converted_and_tagged_as_bt709_so_players_show_the_photos_colo
     for index, colour in enumerate(PATCH_COLOURS):
         centre = shown[preset.height_px // 2, index * band + band // 2].astype(int)
         assert np.abs(centre - colour).max() <= 4, (colour, centre)
+
+
+def test_a_ctrl_c_while_the_encoder_starts_leaves_no_encoder_and_no_partial_clip(
+        tmp_path, monkeypatch, quick_preset):
+    """An interrupt that landed inside subprocess.Popen, after the fork, left an ffmpeg no one
+    knew of: it wrote the clip's temporary file after the clean-up had removed it (about
+    one Ctrl-C in three left a partial clip on a loaded machine)."""
+    from kbbatch import encode
+    from kbbatch.batch import stop_signals
+    from kbbatch.images import atomic_output
+
+    started = []
+    real_popen = subprocess.Popen
+
+    def popen_then_ctrl_c(*args, **kwargs):
+        process = real_popen(*args, **kwargs)
+        started.append(process)
+        os.kill(os.getpid(), signal.SIGINT)  # handled before Popen's caller gets the process
+        time.sleep(0.05)
+        return process
+
+    monkeypatch.setattr(encode.subprocess, "Popen", popen_then_ctrl_c)
+    frame = np.zeros((quick_preset.height_px, quick_preset.width_px, 3), np.uint8)
+    clip = tmp_path / "a.mp4"
+    try:
+        with (stop_signals({}), pytest.raises(KeyboardInterrupt),
+              atomic_output(clip, ".mp4", make_folder=False) as temp_path):
+            encode.encode_frames(temp_path, [frame] * 4, quick_preset)
+        [encoder] = started
+        assert encoder.wait(timeout=10) != 0  # stopped, not left to finish its clip
+        time.sleep(0.5)  # what an encoder left running would write by now
+        assert sorted(path.name for path in tmp_path.iterdir()) == []
+    finally:
+        for process in started:
+            process.kill()
+            process.wait()
