@@ -31,21 +31,21 @@ def present() -> set[int]:
 def test_past_its_bound_the_least_recently_used_entries_go(monkeypatch):
     monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "1")  # 1 MiB: three entries fit, not four
     for index in range(3):
-        depth_cache.store(key(index), result(index))
+        depth_cache.store(key(index), result(index + 1))
         time.sleep(TICK_S)
     assert present() == {0, 1, 2}
-    assert depth_cache.load(key(0)).disparity[0, 0] == 0  # read: now the most recently used
+    assert depth_cache.load(key(0)).disparity[0, 0] == 1  # read: now the most recently used
     time.sleep(TICK_S)
-    depth_cache.store(key(3), result(3))
+    depth_cache.store(key(3), result(4))
     assert present() == {0, 2, 3}, "the least recently used entry (1) should have gone"
     for index in range(4, 8):
         time.sleep(TICK_S)
-        depth_cache.store(key(index), result(index))
+        depth_cache.store(key(index), result(index + 1))
     assert present() == {5, 6, 7}
     total = sum(path.stat().st_size for path in depth_cache.cache_dir().glob("*.npz"))
     assert total <= 2**20
     for index in (5, 6, 7):
-        assert depth_cache.load(key(index)).disparity[0, 0] == index
+        assert depth_cache.load(key(index)).disparity[0, 0] == index + 1
 
 
 def test_a_map_added_to_an_entry_keeps_the_folder_in_its_bound(monkeypatch):
@@ -109,6 +109,20 @@ def test_a_damaged_entry_is_a_miss_not_an_error():
     assert depth_cache.load(key(1)) is None
 
 
+def test_an_entry_of_values_no_disparity_has_is_a_miss_not_a_failed_photo():
+    """Edited by hand (a valid file, a few NaN pixels), an entry failed its photo on every
+    run: "disparity has no positive finite maximum", the cache never named."""
+    for index, spoil in enumerate((lambda d: d.__setitem__((slice(2, 4), slice(2, 4)), np.nan),
+                                   lambda d: d.fill(np.inf), lambda d: d.fill(-1.0)), 1):
+        depth_cache.store(key(index), result(1.0))
+        path = depth_cache.cache_dir() / f"{key(index)}.npz"
+        with np.load(path) as data:
+            arrays = dict(data)
+        spoil(arrays["disparity"])
+        np.savez(path, **arrays)
+        assert depth_cache.load(key(index)) is None
+
+
 WATCHED = 99
 """The entry the reader reads: the writer rewrites it in place, each time followed by another
 entry that pushes the folder past its bound; it is never the least recently used one, so a
@@ -118,13 +132,13 @@ miss can only mean a reader met a partial file."""
 def write_and_evict(rounds: int) -> None:
     """Another process: rewrites the watched entry and fills the cache past its bound."""
     for index in range(rounds):
-        depth_cache.store(key(WATCHED), result(float(index % 2), 1024))
+        depth_cache.store(key(WATCHED), result(float(1 + index % 2), 1024))
         depth_cache.store(key(1 + index % 5), result(7.0, 1024))
 
 
 def test_a_reader_never_sees_a_partial_entry_while_another_process_writes(monkeypatch):
     monkeypatch.setenv(depth_cache.CACHE_MAX_ENV, "10")  # 4 MiB entries: constant eviction
-    depth_cache.store(key(WATCHED), result(0.0, 1024))
+    depth_cache.store(key(WATCHED), result(1.0, 1024))
     writer = multiprocessing.get_context("fork").Process(target=write_and_evict, args=(40,))
     writer.start()
     reads = 0
@@ -135,7 +149,7 @@ def test_a_reader_never_sees_a_partial_entry_while_another_process_writes(monkey
             reads += 1
             assert loaded.disparity.shape == (1024, 1024)
             values = np.unique(loaded.disparity)
-            assert len(values) == 1 and values[0] in (0.0, 1.0), f"mixed entry: {values[:5]}"
+            assert len(values) == 1 and values[0] in (1.0, 2.0), f"mixed entry: {values[:5]}"
     finally:
         writer.join(timeout=60)
     assert writer.exitcode == 0

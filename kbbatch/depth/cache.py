@@ -73,13 +73,25 @@ def load(key: str, image: np.ndarray | None = None) -> DepthResult | None:
                 levels = data["saliency"]
                 if levels.dtype == np.uint16 and levels.shape == image.shape[:2]:
                     context = SceneContext.known(image, _saliency_from_levels(levels))
-            result = DepthResult(data["disparity"], str(data["backend"]),
-                                 str(data["source"]), context)
+            disparity = data["disparity"]
+            if not _is_disparity(disparity):  # a valid file of bad values (edited by hand)
+                return None
+            result = DepthResult(disparity, str(data["backend"]), str(data["source"]),
+                                 context)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None  # absent, or damaged (say truncated by a copy): computed again
     with contextlib.suppress(OSError):  # evicted meanwhile, or a read-only cache
         os.utime(path)  # used now: the last to be evicted
     return result
+
+
+def _is_disparity(disparity: np.ndarray) -> bool:
+    """What the depth stage stores and the camera needs: a 2-D map of finite values with a
+    positive maximum.
+    An entry with a few NaN pixels failed its photo on every run ("disparity has no positive
+    finite maximum"), without naming the cache."""
+    return (disparity.ndim == 2 and disparity.dtype.kind == "f" and disparity.size > 0
+            and bool(np.isfinite(disparity).all()) and float(disparity.max()) > 0)
 
 
 def store(key: str, result: DepthResult) -> None:
