@@ -325,7 +325,22 @@ class InboxTracker:
         if (stat.st_size, stat.st_mtime_ns) != (arrival.size_bytes, arrival.mtime_ns):
             self.arrivals[path] = Arrival(stat.st_size, stat.st_mtime_ns, time.monotonic(), False)
             return False
+        if self.map_being_written(path):
+            return False
         return arrival.renamed or time.monotonic() - arrival.since >= self.settle_s
+
+    def map_being_written(self, path: Path) -> bool:
+        """Whether the photo's depth map beside it changed within the settle time: a photo
+        that settled while its map was still being copied failed ("not a readable image"),
+        and was filed with half its map."""
+        depth_map = find_depth_file(path)
+        if depth_map is None:
+            return False
+        try:
+            changed_s_ago = time.time() - depth_map.stat().st_mtime
+        except OSError:
+            return False
+        return abs(changed_s_ago) < self.settle_s  # a time in the future is no arrival
 
 
 class ManifestFollower:

@@ -244,6 +244,40 @@ def _hang_ups_heard() -> None:
     signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
+def test_a_photo_waits_for_its_depth_map_still_being_written(tmp_path):
+    """The settle time watched the photo alone: one that settled while its map was still
+    being copied in failed ("not a readable image") and was filed with half its map."""
+    import cv2
+    import numpy as np
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    [photo] = shared_photos(1)
+    height, width = cv2.imread(str(photo), cv2.IMREAD_REDUCED_GRAYSCALE_8).shape
+    ramp = np.linspace(1000, 60000, width, dtype=np.float32)[None, :].repeat(height, 0)
+    noise = np.random.default_rng(0).integers(0, 500, (height, width))
+    encoded = cv2.imencode(".png", (ramp + noise).astype(np.uint16))[1].tobytes()
+    daemon = start_daemon(inbox, outbox, preset_file(tmp_path, 0.4), "--depth", "auto")
+    try:
+        time.sleep(1.5)
+        depth_map = inbox / "m.depth.png"
+        chunk = len(encoded) // 8 + 1
+        with depth_map.open("wb") as handle:  # copied in over about 3 s
+            for start in range(0, len(encoded), chunk):
+                handle.write(encoded[start : start + chunk])
+                handle.flush()
+                if start == 0:
+                    shutil.copy(photo, inbox / "m.jpg")  # the photo whole at once
+                time.sleep(0.4)
+        wait_for(lambda: finished_jobs(outbox) == 1, 120, "the photo's clip")
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["m.mp4"]
+    assert not list((inbox / "failed").glob("*"))
+    assert "depth from file" in (tmp_path / "daemon.log").read_text()
+
+
 def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed(tmp_path):
     """systemd's default stop sends SIGTERM to every process of the service, ffmpeg included:
     the photo in progress went to failed/ and was never retried. It stays in the inbox, queued,
