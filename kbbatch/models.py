@@ -198,6 +198,11 @@ def check_cache() -> None:
     found at each photo instead, the daemon filed every good photo as failed for a damaged
     download. The folder itself as check_models_dir."""
     check_models_dir()
+    for spec in REGISTRY.values():  # said as "missing", the run went on without the network
+        path = models_dir() / spec.filename
+        if os.path.lexists(path) and not path.is_file():
+            raise ModelError(f"{path}: has model {spec.name}'s name but is no file (a folder, "
+                             f"a pipe or a broken link); {_remedy(spec)}")
     cached = [(spec, cached_path(spec.name)) for spec in REGISTRY.values()]
     cached = [(spec, path) for spec, path in cached if path is not None]
     if cached:

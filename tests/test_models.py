@@ -2,6 +2,7 @@
 
 import hashlib
 import http.server
+import os
 import re
 import threading
 from dataclasses import replace
@@ -292,3 +293,21 @@ def test_running_a_network_sends_no_telemetry_and_leaves_no_files(tmp_path):
                            "print(os.environ['ORT_DISABLE_TELEMETRY'])"],
                           capture_output=True, text=True, env=environment, timeout=120)
     assert kept.stdout.strip() == "0", kept.stderr
+
+
+def test_a_folder_or_pipe_under_a_models_name_stops_the_run_at_start(tmp_path, monkeypatch):
+    """Listed as "missing", and the run went on without that network, saying nothing."""
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    spec = models.REGISTRY["yolox-nano"]
+    for make in (lambda path: path.mkdir(), os.mkfifo,
+                 lambda path: path.symlink_to(tmp_path / "nowhere.onnx")):
+        path = tmp_path / spec.filename
+        make(path)
+        with pytest.raises(models.ModelError, match=rf"{spec.filename}: has model "
+                           rf"{spec.name}'s name but is no file"):
+            models.check_cache()
+        if path.is_dir() and not path.is_symlink():
+            path.rmdir()
+        else:
+            path.unlink()
+    models.check_cache()
