@@ -31,6 +31,7 @@ from kbbatch import models
 from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
+    DEPTH_MAP_NAME,
     NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
@@ -251,6 +252,12 @@ class Arrival:
     renamed: bool  # arrived by rename (complete at once)
 
 
+def map_stem(name: str) -> str | None:
+    """The photo stem a depth map's file name is for (`a.depth.png`: `a`), else None."""
+    found = DEPTH_MAP_NAME.search(name)
+    return name[:found.start()] if found is not None and found.start() > 0 else None
+
+
 class InboxTracker:
     """Which photos in the inbox are complete: file events in, settled photos out."""
 
@@ -264,6 +271,7 @@ class InboxTracker:
         self.held: set[Path] = set()  # photos the manifest excludes or names as depth maps
         self.removals: queue.Queue[Path] = queue.Queue()  # filled by the observer
         self.removed: set[Path] = set()  # taken photos deleted since (their clips in flight)
+        self.maps: dict[Path, float] = {}  # depth maps in the inbox: their last event's time
 
     def notice(self, path: Path, renamed: bool = False) -> None:
         """A file event (from any thread), or a photo handed back to be taken again."""
@@ -290,6 +298,9 @@ class InboxTracker:
                 path, renamed = self.events.get_nowait()
             except queue.Empty:
                 break
+            if path.parent == self.inbox and map_stem(path.name):
+                self.maps[path] = now
+                continue
             if path.parent != self.inbox or not self.usable(path):
                 continue
             try:
@@ -328,6 +339,20 @@ class InboxTracker:
         if self.map_being_written(path):
             return False
         return arrival.renamed or time.monotonic() - arrival.since >= self.settle_s
+
+    def settled_lone_maps(self) -> list[Path]:
+        """Depth maps in the inbox, unchanged for the settle time, with no photo of their
+        stem waiting; each given once (a photo that comes later finds its map as ever)."""
+        now = time.monotonic()
+        waiting = {photo.stem for photo in self.arrivals}
+        lone = []
+        for path, since in list(self.maps.items()):
+            if now - since < self.settle_s:
+                continue
+            del self.maps[path]
+            if path.exists() and map_stem(path.name) not in waiting:
+                lone.append(path)
+        return lone
 
     def map_being_written(self, path: Path) -> bool:
         """Whether the photo's depth map beside it changed within the settle time: a photo
@@ -737,6 +762,38 @@ class JobRunner:
                 del self.suspects[path]
                 self.file_failure(path, suspect.result)
 
+    def file_late_maps(self, maps: list[Path]) -> None:
+        """A depth map that came after its photo's clip was made (the photo in done/): left
+        in the inbox, it was taken for the map of the next photo dropped under that name,
+        another photo (or that photo failed: "the photo's aspect is ..."). It goes to done/
+        beside its photo, said; dropped in again with the photo, it makes its clip."""
+        if self.keep_sources:  # the photo stays in the inbox: the map is its own
+            return
+        flying = {job.path.stem for job in self.in_flight.values()}
+        done = self.settings.inbox / DONE_FOLDER
+        for depth_map in maps:
+            stem = map_stem(depth_map.name)
+            if stem in flying or any(p.stem == stem for p in self.settings.inbox.iterdir()
+                                     if is_candidate(p)):
+                continue  # its photo is here: the photo's clip takes it
+            made = [photo for photo in (done.iterdir() if done.is_dir() else ())
+                    if photo.stem == stem and is_candidate(photo)
+                    and (job := self.journal.get(photo)) is not None and job.state == "done"]
+            if not made:
+                continue  # its photo may still come
+            photo = max(made, key=lambda path: path.stat().st_mtime_ns)
+            try:
+                destination = unique_destination(done, depth_map.name)
+                move_photo(depth_map, destination)
+            except OSError as error:
+                log.error("%s: came after the clip of its photo %s was made, and cannot be "
+                          "moved to %s/ (%s)", depth_map.name, photo.name, DONE_FOLDER,
+                          error.strerror or error)
+                continue
+            log.warning("%s: came after the clip of %s was made (without it); moved to %s/ "
+                        "beside the photo: drop both in again to make the clip with it",
+                        depth_map.name, photo.name, DONE_FOLDER)
+
     def file_failure(self, path: Path, result: ClipResult) -> None:
         moved = self.move_source(path, FAILED_FOLDER)
         self.write_failure_report(moved or path, result)
@@ -883,6 +940,7 @@ class Daemon:
                     self.stopping.set()
                 try:
                     self.inbox.collect_events()
+                    jobs.file_late_maps(self.inbox.settled_lone_maps())
                     jobs.submit_ready(self.inbox, options, self.stopping)
                     jobs.finish_completed(self.inbox.removed)
                     jobs.file_suspects()

@@ -278,6 +278,40 @@ def test_a_photo_waits_for_its_depth_map_still_being_written(tmp_path):
     assert "depth from file" in (tmp_path / "daemon.log").read_text()
 
 
+def test_a_depth_map_that_comes_after_its_photos_clip_is_not_taken_for_the_next_photo(
+        tmp_path):
+    """A map uploaded after its photo's clip was made stayed in the inbox, and the next
+    photo dropped under that name (another one) was made with it, without a word."""
+    import cv2
+    import numpy as np
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    [photo] = shared_photos(1)
+    height, width = cv2.imread(str(photo), cv2.IMREAD_REDUCED_GRAYSCALE_8).shape
+    ramp = np.linspace(1000, 60000, width, dtype=np.float32)[None, :].repeat(height, 0)
+    daemon = start_daemon(inbox, outbox, preset_file(tmp_path, 0.4), "--depth", "auto")
+    log_path = tmp_path / "daemon.log"
+    try:
+        time.sleep(1.5)
+        shutil.copy(photo, inbox / "late.jpg")
+        wait_for(lambda: finished_jobs(outbox) == 1, 120, "the first photo's clip")
+        cv2.imwrite(str(inbox / "late.depth.png"), ramp.astype(np.uint16))
+        wait_for(lambda: (inbox / "done" / "late.depth.png").exists(), 60,
+                 "the late map filed beside its photo")
+        mirrored = cv2.flip(cv2.imread(str(photo)), 1)
+        cv2.imwrite(str(inbox / ".late.jpg"), mirrored)
+        (inbox / ".late.jpg").rename(inbox / "late.jpg")  # another photo, the same name
+        wait_for(lambda: finished_jobs(outbox) == 2, 120, "the second photo's clip")
+    finally:
+        assert stop(daemon) == 0
+    log = log_path.read_text()
+    assert "late.depth.png: came after the clip of late.jpg was made" in log, log
+    assert "depth from file" not in log, log
+    assert not list((inbox / "failed").glob("*"))
+
+
 def test_a_stop_that_also_signals_the_encoder_leaves_the_photo_queued_not_failed(tmp_path):
     """systemd's default stop sends SIGTERM to every process of the service, ffmpeg included:
     the photo in progress went to failed/ and was never retried. It stays in the inbox, queued,
