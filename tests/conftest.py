@@ -71,6 +71,22 @@ def isolated_depth_cache(tmp_path_factory, monkeypatch):
     monkeypatch.setenv("KBBATCH_CACHE", str(tmp_path_factory.mktemp("depth-cache")))
 
 
+@pytest.fixture(autouse=True)
+def signals_as_they_were():
+    """What a test's in-process run did to this process's signal handling is undone: an
+    entry point that ignores signals once stopped left the test process ignoring Ctrl-C and
+    SIGTERM, and every batch the later tests started inherited that (it then ran through
+    the Ctrl-C it was tested with)."""
+    import signal
+
+    numbers = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    handlers = {number: signal.getsignal(number) for number in numbers}
+    yield
+    for number, handler in handlers.items():
+        if signal.getsignal(number) is not handler and handler is not None:
+            signal.signal(number, handler)
+
+
 def run_in_child(script: str, folder: Path) -> str:
     """Run a Python script in a fresh process with folder's bytes as sys.argv[1] (a name that
     is not UTF-8 reaches it as the OS gives it) and return its stdout; it must succeed."""

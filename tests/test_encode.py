@@ -279,6 +279,7 @@ def test_a_ctrl_c_while_the_encoder_starts_leaves_no_encoder_and_no_partial_clip
     monkeypatch.setattr(encode.subprocess, "Popen", popen_then_ctrl_c)
     frame = np.zeros((quick_preset.height_px, quick_preset.width_px, 3), np.uint8)
     clip = tmp_path / "a.mp4"
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # as a command has it
     try:
         with (stop_signals({}), pytest.raises(KeyboardInterrupt),
               atomic_output(clip, ".mp4", make_folder=False) as temp_path):
@@ -288,6 +289,7 @@ def test_a_ctrl_c_while_the_encoder_starts_leaves_no_encoder_and_no_partial_clip
         time.sleep(0.5)  # what an encoder left running would write by now
         assert sorted(path.name for path in tmp_path.iterdir()) == []
     finally:
+        signal.signal(signal.SIGINT, previous)
         for process in started:
             process.kill()
             process.wait()

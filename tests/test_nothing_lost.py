@@ -774,8 +774,16 @@ def test_a_ctrl_c_a_library_turned_into_another_error_still_stops_the_run(
     from kbbatch import entry, pipeline
 
     monkeypatch.setattr(entry, "_run", _interrupt_a_library_turned_into_an_import_error)
-    with pytest.raises(SystemExit) as stopped:
-        entry.main()
+    # stopped, the entry point ignores further signals until the process ends: this one must
+    # hear them again (left ignored, every process the later tests start inherited that)
+    handlers = {number: signal.getsignal(number)
+                for number in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        with pytest.raises(SystemExit) as stopped:
+            entry.main()
+    finally:
+        for number, handler in handlers.items():
+            signal.signal(number, handler)
     assert stopped.value.code == entry.EXIT_INTERRUPTED
     assert "interrupted" in capsys.readouterr().err
     source = photo(tmp_path / "in" / "a.jpg", seed=1)
