@@ -244,9 +244,9 @@ def _hang_ups_heard() -> None:
     signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
-def test_a_photo_waits_for_its_depth_map_still_being_written(tmp_path):
-    """The settle time watched the photo alone: one that settled while its map was still
-    being copied in failed ("not a readable image") and was filed with half its map."""
+def folders_photo_and_map(tmp_path: Path):
+    """Inbox and outbox, a shared photo, and a depth ramp of the photo's aspect (16-bit
+    levels as floats; an eighth of its size)."""
     import cv2
     import numpy as np
 
@@ -256,7 +256,17 @@ def test_a_photo_waits_for_its_depth_map_still_being_written(tmp_path):
     [photo] = shared_photos(1)
     height, width = cv2.imread(str(photo), cv2.IMREAD_REDUCED_GRAYSCALE_8).shape
     ramp = np.linspace(1000, 60000, width, dtype=np.float32)[None, :].repeat(height, 0)
-    noise = np.random.default_rng(0).integers(0, 500, (height, width))
+    return inbox, outbox, photo, ramp
+
+
+def test_a_photo_waits_for_its_depth_map_still_being_written(tmp_path):
+    """The settle time watched the photo alone: one that settled while its map was still
+    being copied in failed ("not a readable image") and was filed with half its map."""
+    import cv2
+    import numpy as np
+
+    inbox, outbox, photo, ramp = folders_photo_and_map(tmp_path)
+    noise = np.random.default_rng(0).integers(0, 500, ramp.shape)
     encoded = cv2.imencode(".png", (ramp + noise).astype(np.uint16))[1].tobytes()
     daemon = start_daemon(inbox, outbox, preset_file(tmp_path, 0.4), "--depth", "auto")
     try:
@@ -285,12 +295,7 @@ def test_a_depth_map_that_comes_after_its_photos_clip_is_not_taken_for_the_next_
     import cv2
     import numpy as np
 
-    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
-    inbox.mkdir()
-    outbox.mkdir()
-    [photo] = shared_photos(1)
-    height, width = cv2.imread(str(photo), cv2.IMREAD_REDUCED_GRAYSCALE_8).shape
-    ramp = np.linspace(1000, 60000, width, dtype=np.float32)[None, :].repeat(height, 0)
+    inbox, outbox, photo, ramp = folders_photo_and_map(tmp_path)
     daemon = start_daemon(inbox, outbox, preset_file(tmp_path, 0.4), "--depth", "auto")
     log_path = tmp_path / "daemon.log"
     try:
