@@ -275,12 +275,13 @@ def encode_frames(path: Path, frames: Iterable[np.ndarray], preset: Preset,
                   comment: str | None = None) -> int:
     """Write frames (H, W, 3 uint8 RGB) to path with the preset's encoder; returns the count.
     comment: written into the clip's metadata (clip_mark)."""
-    # Its own session: a stop signal sent to the whole process group (a shell, a supervisor)
-    # is the runner's to act on; the runner then finishes or ends the clip itself.
     process = None
     count = 0
     try:
-        with held():  # a Ctrl-C inside Popen would leave an encoder no one can stop
+        # Its own session: a stop signal sent to the whole process group (a shell, a
+        # supervisor) is the runner's to act on; the runner then finishes or ends the clip
+        # itself. Started with Ctrl-C held: one inside Popen left an encoder no one could stop.
+        with held():
             process = subprocess.Popen(
                 encoder_command(path, preset, comment=comment), stdin=subprocess.PIPE,
                 stderr=subprocess.PIPE,

@@ -113,6 +113,12 @@ DEPTH_MAP_NAME = re.compile(r"\.(depth|disparity)\.(png|npy|exr)$", re.IGNORECAS
 Only the end: `dive.depth.40m.jpg` is a photo (any `.depth.` in a name once hid it silently)."""
 
 
+def map_stem(name: str) -> str | None:
+    """The photo stem a depth map's file name is for (`a.depth.png`: `a`), else None."""
+    found = DEPTH_MAP_NAME.search(name)
+    return name[:found.start()] if found is not None and found.start() > 0 else None
+
+
 OLD_PLAN_SHEET_SUFFIX = "-contact.jpg"
 """Versions before 0.x wrote `kbbatch plan`'s contact sheet as `<manifest>-contact.jpg` beside the
 manifest and its `<manifest>-previews/` folder, often in the photo folder: not a photo."""

@@ -31,7 +31,6 @@ from kbbatch import models
 from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
-    DEPTH_MAP_NAME,
     NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
@@ -41,6 +40,7 @@ from kbbatch.images import (
     fitted_name,
     free_bytes,
     is_image_file,
+    map_stem,
     scan_folder,
     unreadable_reason,
 )
@@ -252,12 +252,6 @@ class Arrival:
     renamed: bool  # arrived by rename (complete at once)
 
 
-def map_stem(name: str) -> str | None:
-    """The photo stem a depth map's file name is for (`a.depth.png`: `a`), else None."""
-    found = DEPTH_MAP_NAME.search(name)
-    return name[:found.start()] if found is not None and found.start() > 0 else None
-
-
 class InboxTracker:
     """Which photos in the inbox are complete: file events in, settled photos out."""
 
@@ -336,9 +330,8 @@ class InboxTracker:
         if (stat.st_size, stat.st_mtime_ns) != (arrival.size_bytes, arrival.mtime_ns):
             self.arrivals[path] = Arrival(stat.st_size, stat.st_mtime_ns, time.monotonic(), False)
             return False
-        if self.map_being_written(path):
-            return False
-        return arrival.renamed or time.monotonic() - arrival.since >= self.settle_s
+        settled = arrival.renamed or time.monotonic() - arrival.since >= self.settle_s
+        return settled and not self.map_being_written(path)  # looked up once it counts
 
     def settled_lone_maps(self) -> list[Path]:
         """Depth maps in the inbox, unchanged for the settle time, with no photo of their

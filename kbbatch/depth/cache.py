@@ -87,9 +87,8 @@ def load(key: str, image: np.ndarray | None = None) -> DepthResult | None:
 
 def _is_disparity(disparity: np.ndarray) -> bool:
     """What the depth stage stores and the camera needs: a 2-D map of finite values with a
-    positive maximum.
-    An entry with a few NaN pixels failed its photo on every run ("disparity has no positive
-    finite maximum"), without naming the cache."""
+    positive maximum. An entry with a few NaN pixels failed its photo on every run
+    ("disparity has no positive finite maximum"), without naming the cache."""
     return (disparity.ndim == 2 and disparity.dtype.kind == "f" and disparity.size > 0
             and bool(np.isfinite(disparity).all()) and float(disparity.max()) > 0)
 

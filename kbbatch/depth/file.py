@@ -24,6 +24,7 @@ from kbbatch.depth import DepthError, DepthResult
 from kbbatch.images import (
     DEPTH_MAP_NAME,
     SOURCE_SHA256_KEY,
+    map_stem,
     own_png_text,
     read_image_bytes,
 )
@@ -130,9 +131,9 @@ def _maps_in(folder: str, listing_mtime_ns: int) -> dict[str, list[str]]:
     except OSError:
         return maps
     for name in entries:
-        found = DEPTH_MAP_NAME.search(name)
-        if found is not None and found.start() > 0:
-            maps.setdefault(name[:found.start()], []).append(name)
+        stem = map_stem(name)
+        if stem is not None:
+            maps.setdefault(stem, []).append(name)
     return maps
 
 
