@@ -544,6 +544,8 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         content = file_sha256(source)
         settings = clip_fingerprints(source, content, preset, options, entry)
     except OSError as error:
+        if not os.path.lexists(source):
+            return removed_result(source)
         return ClipResult(str(source), None, "failed", 0.0,
                           error=f"{error.filename or source}: {unreadable_reason(error)}")
     try:
@@ -573,6 +575,13 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
                    content=content)
 
 
+def removed_result(source: Path) -> ClipResult:
+    """A photo deleted from its folder during the run: its owner's choice, not a failure (the
+    report said FAILED and exited 1, while `kbbatch status` counted no failure)."""
+    return ClipResult(str(source), None, "removed", 0.0,
+                      note=f"{source}: removed from its folder during the run; not made")
+
+
 def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
     """Record a made clip in the journal; a journal that cannot be written fails the photo."""
     from kbbatch.journal import JournalError, source_fingerprint
@@ -583,6 +592,13 @@ def finish_job(journal, job: ClipJob, result: ClipResult) -> ClipResult:
         result.status = "failed"
         result.error = (f"{job.source}: changed while its clip was made (saved again during "
                         "the run?); run again to make it from the photo as it is then")
+    if result.status == "failed" and not os.path.lexists(job.source):
+        try:
+            journal.photo_gone(job.source, job.output.parent)
+        except JournalError as error:
+            return ClipResult(str(job.source), None, "failed", 0.0,
+                              error=f"{job.source}: {error}")
+        return removed_result(job.source)
     replaced = (replaced_clip_note(job.source, job.output.name)
                 if job.replaces_other_bytes and result.status == "done" else None)
     result.note = joined_notes(job.name_note, result.note, replaced)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import sys
 import unicodedata
 from dataclasses import fields
@@ -471,6 +472,9 @@ def _print_summary(report: RunReport) -> None:
                f"up to date, {len(report.failed)} failed, preset {report.preset}")
     if excluded:
         click.echo(f"{len(excluded)} photo(s) excluded by the manifest")
+    removed = [r for r in report.results if r.status == "removed"]
+    if removed:
+        click.echo(f"{len(removed)} photo(s) removed from the folder during the run")
     if report.interrupted:
         click.echo(f"{len(report.interrupted)} clip(s) interrupted (their encoder was "
                    "stopped); run again to finish", err=True)
@@ -531,7 +535,8 @@ def models_list() -> None:
 
 @models.command("pull")
 @click.argument("name", type=click.Choice(sorted(model_registry.REGISTRY)))
-@click.option("--sha256", help="The checksum you trust, for models without a registered one.")
+@click.option("--sha256", callback=lambda _context, _param, value: _sha256_hex(value),
+              help="The checksum you trust, for models without a registered one.")
 def models_pull(name: str, sha256: str | None) -> None:
     """Download a model into the cache, verifying its sha256."""
     try:
@@ -539,6 +544,14 @@ def models_pull(name: str, sha256: str | None) -> None:
     except model_registry.ModelError as error:
         raise click.ClickException(str(error)) from error
     click.echo(f"{name}: {path}")
+
+
+def _sha256_hex(value: str | None) -> str | None:
+    """64 hex digits, checked before the download (a typo was found only after it)."""
+    if value is not None and not re.fullmatch(r"[0-9a-fA-F]{64}", value.strip()):
+        raise click.BadParameter(f"{value!r} is not a sha256 (64 hex digits)",
+                                 param_hint="'--sha256'")
+    return value.strip().lower() if value is not None else None
 
 
 def _finite_seconds(context: click.Context, param: click.Parameter, value: float) -> float:

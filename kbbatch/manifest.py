@@ -126,8 +126,13 @@ class ManifestEntry:
 
 
 def _describe(crop: Crop) -> str:
-    return (f"[{crop.left_px:.0f}, {crop.top_px:.0f}, {crop.right_px:.0f}, "
-            f"{crop.bottom_px:.0f}]")
+    """[left, top, right, bottom] in px; a number too large to read is said as such (1e300
+    printed as its 301 digits, four times, on one line)."""
+    def px(value: float) -> str:
+        return f"{value:.0f}" if abs(value) < 1e9 else f"{value:.3g}"
+
+    return (f"[{px(crop.left_px)}, {px(crop.top_px)}, {px(crop.right_px)}, "
+            f"{px(crop.bottom_px)}]")
 
 
 def _normal(name: str) -> str:

@@ -156,6 +156,10 @@ PROVIDER_ENV = "KBBATCH_PROVIDER"
 PROVIDER_NAMES = {"cpu": "CPUExecutionProvider", "cuda": "CUDAExecutionProvider"}
 """Short names for $KBBATCH_PROVIDER; a full onnxruntime provider name works as well."""
 
+REMOTE_PROVIDERS = ("AzureExecutionProvider",)
+"""Providers onnxruntime lists as available that run no network on this machine: named in
+$KBBATCH_PROVIDER, the report said the models ran on Azure while each ran on the CPU."""
+
 _jobs_sharing_cores = 1
 
 
@@ -232,10 +236,14 @@ def cache_problem(spec: ModelSpec, path: Path) -> str | None:
                 return (f"not the file of model {spec.name} (sha256 {actual[:16]}..., expected "
                         f"{spec.sha256[:16]}...): damaged or another file; {_remedy(spec)}")
             return None
-        with path.open("rb") as handle:
-            handle.read(1)
+        stat = path.stat()
+        actual = _sha256(path, stat.st_size, stat.st_mtime_ns)
     except OSError as error:
         return f"model {spec.name} cannot be read ({error.strerror or error})"
+    other = next((o for o in REGISTRY.values() if o.sha256 and o.sha256.lower() == actual), None)
+    if other is not None:  # its tensors can pass for the role's (ISNet's are a depth net's)
+        return (f"the file of model {other.name} ({other.role}), not of {spec.name}; "
+                f"{_remedy(spec)}")
     if spec.role not in EXPECTED_TENSORS:
         return None
     try:
@@ -287,11 +295,25 @@ def tensors_problem(spec: ModelSpec, created) -> str | None:
             fits(shape, wanted) for shape, wanted in zip(given, inputs_wanted, strict=False)):
         return (f"{kind}: it takes {_shapes(given)}, expected {_shapes(inputs_wanted)}; "
                 f"{_remedy(spec)}")
+    gives = _shapes([list(outputs[0].shape)] if outputs else [])
     if not outputs or not any(fits(list(outputs[0].shape), shape) for shape in outputs_wanted):
-        gives = _shapes([list(outputs[0].shape)] if outputs else [])
         return (f"{kind}: it gives {gives}, expected {_shapes(outputs_wanted, ' or ')}; "
                 f"{_remedy(spec)}")
+    if not same_aspect(given[0][-2:], list(outputs[0].shape)[-2:]):
+        # a detector's (1, 3549, 85) fits (1, N, N): an image of its input's shape does not
+        return (f"{kind}: it gives {gives} for {_shapes(given[:1])}, not an image of the "
+                f"input's shape; {_remedy(spec)}")
     return None
+
+
+def same_aspect(input_hw: list, output_hw: list) -> bool:
+    """Whether an output image, where both its size and the input's are fixed, has the input's
+    height-to-width ratio (within a pixel of rounding: networks give a half or a quarter size)."""
+    sizes = [*input_hw, *output_hw]
+    if not all(isinstance(size, int) and size > 0 for size in sizes):
+        return True  # a free size: known only when it runs
+    in_h, in_w, out_h, out_w = sizes
+    return abs(out_h * in_w - out_w * in_h) <= max(in_h, in_w)
 
 
 def _shapes(shapes, joiner: str = ", ") -> str:
@@ -331,9 +353,13 @@ def execution_provider() -> str:
         return PROVIDER_NAMES["cuda"] if PROVIDER_NAMES["cuda"] in available else \
             PROVIDER_NAMES["cpu"]
     provider = PROVIDER_NAMES.get(wanted.lower(), wanted)
+    local = ", ".join(p for p in available if p not in REMOTE_PROVIDERS)
+    if provider in REMOTE_PROVIDERS:  # listed as available, it runs nothing here
+        raise ModelError(f"{PROVIDER_ENV}={wanted}: {provider} calls a remote endpoint, it "
+                         f"runs no network on this machine; this onnxruntime offers {local}")
     if provider not in available:
-        raise ModelError(f"{PROVIDER_ENV}={wanted}: this onnxruntime offers "
-                         f"{', '.join(available)} (CUDA needs the onnxruntime-gpu extra)")
+        raise ModelError(f"{PROVIDER_ENV}={wanted}: this onnxruntime offers {local} (CUDA "
+                         "needs the onnxruntime-gpu extra)")
     return provider
 
 

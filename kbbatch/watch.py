@@ -142,8 +142,15 @@ SPACE_RETRY_S = 60.0
 """After a full disk the daemon cannot measure (a Ray node's temporary folder), photos are taken
 again this long after."""
 
+MAX_REPORT_BYTES = 1 << 20
+"""A file in the failure reports' folder larger than this is not read as one of the reports."""
+
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
+
+RUN_FAULT_RETRY_S = 5.0
+"""After a photo failed for a fault of the run's (run_fault), how often the daemon looks whether
+it is mended before it takes photos again."""
 
 
 class PhotoLogFilter(logging.Filter):
@@ -219,6 +226,20 @@ def folder_is_writable(folder: Path) -> bool:
             return True
     except OSError:
         return False
+
+
+def run_fault(outbox: Path) -> str | None:
+    """Why no photo can be made now for a reason of the run's, not the photo's: the output
+    folder can no longer be written (made read-only while the daemon ran), or a model file was
+    damaged or replaced by another. Each photo then failed, and a whole inbox went to failed/,
+    for its owner to move back one by one."""
+    if not folder_is_writable(outbox):
+        return f"{outbox}: files can no longer be made in the output folder (made read-only?)"
+    try:
+        models.check_cache()
+    except models.ModelError as error:
+        return str(error)
+    return None
 
 
 @dataclass(frozen=True)
@@ -405,6 +426,7 @@ class JobRunner:
         self.worker_deaths: dict[Path, int] = {}  # photos in flight when a worker died
         self.encoder_stops: dict[Path, int] = {}  # photos whose encoder a signal stopped
         self.space_wanted: tuple[Path, int, float | None] | None = None  # after a full disk
+        self.fault: tuple[str, float] | None = None  # run_fault's reason, when to look again
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
         self.manifest = ManifestFollower(settings.manifest)
         # the inbox as given too: a link to it pointed elsewhere leaves the folder watched
@@ -473,7 +495,7 @@ class JobRunner:
                     self.requeue(path, False)
                 else:
                     inbox.held.discard(path)
-        if not self.has_space():
+        if not self.has_space() or self.fault_remains():
             return
         busy = {job.path for job in self.in_flight.values()} | set(self.suspects)
         for path in sorted(inbox.arrivals, key=lambda p: (p not in self.worker_deaths, p)):
@@ -518,7 +540,8 @@ class JobRunner:
             if self.journal.is_up_to_date(path, fingerprint, settings, output, content) and not (
                     options.save_depth and depth_images_missing(output)):
                 inbox.forget(path)
-                log.info("%s: clip already complete, moving the photo", path.name)
+                log.info("%s: clip already complete%s", path.name,
+                         "" if self.keep_sources else ", moving the photo")
                 self.move_source(path, DONE_FOLDER)
                 continue
             name = self.journal.name_to_make(path, content, preferred, s.outbox,
@@ -586,6 +609,13 @@ class JobRunner:
                 log.info("%s was removed from the inbox while it was processed; skipped",
                          job.path.name)
                 continue
+            fault = run_fault(self.settings.outbox) if result.status == "failed" else None
+            if fault:  # the run's fault, not the photo's: it stays queued until mended
+                self.journal.finish(job.path, "queued", result.seconds, result.error)
+                del self.in_flight[future]
+                self.hold_for(fault, job.path)
+                self.requeue(job.path, job.renamed)
+                continue
             if result.status == "no_space":  # not the photo's fault: it waits for room
                 self.journal.finish(job.path, "queued", result.seconds, result.error)
                 del self.in_flight[future]
@@ -627,7 +657,8 @@ class JobRunner:
                          result.seconds, result.output, job.path.name)
                 self.requeue(job.path, False)
             elif result.status == "done":
-                self.move_source(job.path, DONE_FOLDER)
+                if self.move_source(job.path, DONE_FOLDER) is None:
+                    self.remove_reports_of(job.path)
                 log.info("done %s in %.1f s -> %s", job.path.name, result.seconds,
                          result.output)
                 if result.note:
@@ -676,6 +707,28 @@ class JobRunner:
         log.info("%s has room again (%s MB free): taking photos again", folder,
                  "?" if free is None else free >> 20)
         return True
+
+    def hold_for(self, fault: str, path: Path) -> None:
+        if self.fault is None:
+            log.warning("%s: not made: %s; it stays in the inbox, and no photo is taken until "
+                        "that is mended", path.name, fault)
+        else:
+            log.info("%s: not made (%s); it stays in the inbox", path.name, fault)
+        self.fault = (fault, time.monotonic() + RUN_FAULT_RETRY_S)
+
+    def fault_remains(self) -> bool:
+        """Photos wait while a run fault lasts; looked at every RUN_FAULT_RETRY_S."""
+        if self.fault is None:
+            return False
+        reason, look_at = self.fault
+        if time.monotonic() < look_at:
+            return True
+        if run_fault(self.settings.outbox):
+            self.fault = (reason, time.monotonic() + RUN_FAULT_RETRY_S)
+            return True
+        self.fault = None
+        log.info("no longer so (%s): taking photos again", reason)
+        return False
 
     def recover_from_worker_death(self) -> None:
         """A worker process died (out of memory, killed): the pool is broken and every photo in
@@ -761,6 +814,7 @@ class JobRunner:
         another photo (or that photo failed: "the photo's aspect is ..."). It goes to done/
         beside its photo, said; dropped in again with the photo, it makes its clip."""
         if self.keep_sources:  # the photo stays in the inbox: the map is its own
+            self.retake_photos_of(maps)
             return
         flying = {job.path.stem for job in self.in_flight.values()}
         done = self.settings.inbox / DONE_FOLDER
@@ -786,6 +840,18 @@ class JobRunner:
             log.warning("%s: came after the clip of %s was made (without it); moved to %s/ "
                         "beside the photo: drop both in again to make the clip with it",
                         depth_map.name, photo.name, DONE_FOLDER)
+
+    def retake_photos_of(self, maps: list[Path]) -> None:
+        """A depth map saved or edited beside a photo that stays in the inbox: the photo is
+        looked at again, and its clip made again with the map (only a restart did). One in
+        flight is taken again once its clip is made."""
+        for depth_map in maps:
+            stem = map_stem(depth_map.name)
+            for photo in sorted(self.settings.inbox.iterdir()):
+                if photo.stem == stem and is_candidate(photo):
+                    log.info("%s: its depth map %s was saved; looked at again", photo.name,
+                             depth_map.name)
+                    self.requeue(photo, False)
 
     def file_failure(self, path: Path, result: ClipResult) -> None:
         moved = self.move_source(path, FAILED_FOLDER)
@@ -824,7 +890,35 @@ class JobRunner:
                           folder, error.strerror or error)
         return destination
 
+    def reports_of_kept_photo(self, photo: Path) -> list[Path]:
+        """The failure reports of a photo that stays where it is (--keep-sources, a read-only
+        inbox): each new failure added one beside the last, and one made later kept saying it
+        failed."""
+        if photo.parent.name == FAILED_FOLDER or not self.failure_reports.is_dir():
+            return []
+        reports = []
+        for report in self.failure_reports.glob("*.error.json"):
+            try:
+                if report.stat().st_size <= MAX_REPORT_BYTES and json.loads(
+                        report.read_text(encoding="utf-8")).get("photo") == str(photo):
+                    reports.append(report)
+            except (OSError, ValueError, AttributeError):
+                continue  # not one of ours
+        return reports
+
+    def remove_reports_of(self, photo: Path) -> None:
+        for report in self.reports_of_kept_photo(photo):
+            try:
+                report.unlink()
+            except OSError as error:
+                log.error("%s: an earlier failure report of %s, cannot be removed (%s)",
+                          report, photo.name, error.strerror or error)
+            else:
+                log.info("%s: removed %s, the report of its earlier failure", photo.name,
+                         report.name)
+
     def write_failure_report(self, photo: Path, result: ClipResult) -> None:
+        self.remove_reports_of(photo)
         folder = photo.parent if photo.parent.name == FAILED_FOLDER else self.failure_reports
         name = fitted_name(photo.name, ".error.json")
         report = folder / name

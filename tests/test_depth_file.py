@@ -34,6 +34,7 @@ def test_user_disparity_npy_keeps_its_convention(tmp_path):
     (np.full((40, 60), np.nan, np.float32), "NaN"),
     (np.full((40, 60), 3.0, np.float32), "constant"),
     (np.linspace(1, 2, 40 * 40, dtype=np.float32).reshape(40, 40), "aspect"),
+    (np.eye(40, 60, dtype=bool) | True, r"true/false values \(a mask\?\), not depths"),
 ])
 def test_bad_depth_files_get_a_clear_error(tmp_path, data, reason):
     photo = tmp_path / "bad.jpg"
@@ -280,3 +281,24 @@ def test_a_map_name_that_is_no_regular_file_is_said_not_passed_over(tmp_path, ca
             assert find_depth_file(photo) is None  # looked for again: said once
         said = [r.getMessage() for r in caplog.records if f"{stem}.depth.png" in r.getMessage()]
         assert len(said) == 1 and "not a regular file" in said[0], said
+
+
+def test_a_depth_and_a_disparity_map_of_one_photo_are_said_once(tmp_path, caplog):
+    """Both beside the photo, the depth map was used without a word: a user who meant the
+    disparity map saw its depth reversed and never knew why."""
+    import logging
+
+    from kbbatch.depth.file import find_depth_file
+
+    photo = tmp_path / "both.jpg"
+    Image.fromarray(textured_image(60, 80, seed=1)).save(photo)
+    ramp = np.tile(np.linspace(1000, 9000, 80).astype(np.uint16), (60, 1))
+    cv2.imwrite(str(tmp_path / "both.depth.png"), ramp)
+    np.save(tmp_path / "both.disparity.npy", ramp.astype(np.float32))
+    with caplog.at_level(logging.WARNING):
+        assert find_depth_file(photo).name == "both.depth.png"
+        assert find_depth_file(photo).name == "both.depth.png"  # looked for again: said once
+    said = [r.getMessage() for r in caplog.records if "both.jpg" in r.getMessage()]
+    assert said == [f"{photo}: both.depth.png and both.disparity.npy are maps of this "
+                    "photo; both.depth.png is used (depth before disparity, PNG before .npy "
+                    "before .exr): remove the others"], said

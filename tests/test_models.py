@@ -158,6 +158,12 @@ def test_sessions_take_their_share_of_the_cores_and_the_chosen_provider(tmp_path
         with pytest.raises(models.ModelError, match="KBBATCH_PROVIDER=cuda: this onnxruntime "
                                                     "offers .*CPUExecutionProvider"):
             models.execution_provider()
+    if "AzureExecutionProvider" in onnxruntime.get_available_providers():
+        # listed as available, it ran nothing: the report said the models ran on Azure
+        monkeypatch.setenv(models.PROVIDER_ENV, "AzureExecutionProvider")
+        with pytest.raises(models.ModelError, match="KBBATCH_PROVIDER=AzureExecutionProvider: "
+                           "AzureExecutionProvider calls a remote endpoint"):
+            models.execution_provider()
 
 
 def test_a_damaged_model_in_the_cache_stops_the_run_at_start_naming_the_file(
@@ -208,6 +214,42 @@ def test_a_network_of_another_kind_under_a_depth_models_name_stops_the_run_at_st
         models.check_cache()
     path.write_bytes(tiny_depth_model())
     models.check_cache()
+
+
+def test_a_detector_or_segmenter_under_a_depth_models_name_stops_the_run_at_start(
+        tmp_path, monkeypatch):
+    """YOLOX's (1, 3549, 85) fitted a depth map's (1, N, N), and ISNet's (1, 1, 1024, 1024) is a
+    depth network's shape: both passed the start check, and every photo then failed or got
+    a saliency mask for its depth."""
+    import shutil
+
+    from .conftest import SHARED
+
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    path = tmp_path / "depth_anything_v2_small.onnx"
+    graph = helper.make_graph(  # a detector's rows of box scores: (1, 96, 32) from 32 x 32
+        [helper.make_node("Reshape", ["images", "rows"], ["output"])], "tiny-detector",
+        [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, 32, 32])],
+        [helper.make_tensor_value_info("output", TensorProto.FLOAT, [1, 96, 32])],
+        [helper.make_tensor("rows", TensorProto.INT64, [3], [1, 96, 32])])
+    detector = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    detector.ir_version = 8
+    path.write_bytes(detector.SerializeToString())
+    with pytest.raises(models.ModelError, match=r"not a depth network of depth-anything-v2-"
+                       r"small's kind: it gives \(1, 96, 32\) for \(1, 3, 32, 32\), not an "
+                       r"image of the input's shape"):
+        models.check_cache()
+    path.write_bytes(tiny_depth_model((1, 3, 32, 48)))  # a real depth net's fixed size passes
+    models.check_cache()
+    for name in ("isnet_dis_medium.onnx", "yolox_nano_coco_416.onnx"):
+        real = SHARED / "models" / name
+        if not real.is_file():
+            pytest.skip(f"{real} is absent (../shared holds the real segmentation models)")
+        shutil.copyfile(real, path)
+        with pytest.raises(models.ModelError, match=r"depth_anything_v2_small.onnx: the file "
+                           r"of model (isnet-dis-medium \(salient\)|yolox-nano \(detector\)), "
+                           r"not of depth-anything-v2-small"):
+            models.check_cache()
 
 
 @pytest.mark.parametrize("input_shape", [(1, 3, 42, 56), (1, 3, 42, None)])
@@ -311,3 +353,19 @@ def test_a_folder_or_pipe_under_a_models_name_stops_the_run_at_start(tmp_path, m
         else:
             path.unlink()
     models.check_cache()
+
+
+@pytest.mark.parametrize("given", ["zz", "abc", "g" * 64])
+def test_a_sha256_that_is_no_checksum_is_refused_before_any_download(tmp_path, monkeypatch,
+                                                                    given):
+    """`models pull --sha256 zz` downloaded the whole file, then failed in pooch's words."""
+    from click.testing import CliRunner
+
+    from kbbatch.cli import main
+
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))
+    monkeypatch.setattr(models, "pull", lambda *a, **k: pytest.fail("downloaded"))
+    result = CliRunner().invoke(main, ["models", "pull", "midas-v21-small", "--sha256", given])
+    assert result.exit_code == 2, result.output
+    assert f"Invalid value for '--sha256': '{given}' is not a sha256 (64 hex digits)" in \
+        result.output

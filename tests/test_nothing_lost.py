@@ -32,7 +32,7 @@ from kbbatch.images import (
     scan_folder,
 )
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
-from kbbatch.pipeline import ClipOptions
+from kbbatch.pipeline import ClipOptions, make_clip
 from kbbatch.presets import with_overrides
 
 from .conftest import textured_image
@@ -651,6 +651,40 @@ def slow_folder(tmp_path: Path) -> Path:
     for index in range(2):
         photo(folder / f"p{index}.jpg", seed=index, height=360, width=640)
     return folder
+
+
+@pytest.mark.slow
+def test_a_photo_deleted_during_the_batch_is_said_not_failed(tmp_path):
+    """The report said FAILED ("cannot be read") and the run exited 1, while `kbbatch status`
+    counted no failure: a photo its owner deleted is no failure of the batch."""
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    code, stderr = act_while_encoding(folder, out, 2.0,
+                                      lambda _: (folder / "p1.jpg").unlink())
+    assert code == 0, stderr
+    assert "FAILED" not in stderr
+    assert f"NOTE {folder / 'p1.jpg'}: removed from its folder during the run" in stderr
+    report = json.loads((out / batch.REPORT_NAME).read_text())
+    assert [(Path(c["source"]).name, c["status"]) for c in report["clips"]] == [
+        ("p0.jpg", "done"), ("p1.jpg", "removed")]
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert "done 1, failed 0" in status.stdout, status.stdout
+
+
+def test_a_photo_deleted_after_its_job_started_leaves_no_job_or_failure(tmp_path, quick_preset):
+    """Deleted between its start in the journal and its read: no failure, no job left."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    source = photo(folder / "a.jpg", seed=1)
+    out.mkdir()
+    journal = Journal(out)
+    try:
+        job = batch.start_job(journal, source, out, "a.mp4", quick_preset, FAST, None, False)
+        source.unlink()
+        made = make_clip(source, job.output, quick_preset, FAST, False)
+        result = batch.finish_job(journal, job, made)
+        assert (result.status, result.error) == ("removed", None)
+        assert journal.get(source) is None
+    finally:
+        journal.close()
 
 
 @pytest.mark.slow

@@ -285,6 +285,9 @@ CROP = {"center_x": 0.5, "center_y": 0.5, "width": 0.9}
     ({"images": {"a.jpg": {"start": CROP}}}, "image 'a.jpg'"),
     ({"images": {"a.jpg": {"zoom": 2}}}, "image 'a.jpg'"),
     ({"imagez": {}}, "top level"),
+    ({"images": {"a.jpg": {"depth": ""}}},  # was taken for no map at all, without a word
+     "image 'a.jpg': field 'depth': '' should be non-empty"),
+    ({"images": {"a.jpg": {"depth": "  "}}}, "image 'a.jpg': field 'depth': '  ' does not match"),
 ])
 def test_schema_errors_name_the_manifest_image_and_field(tmp_path, data, message):
     path = write(tmp_path / "m.json", data)
@@ -984,3 +987,16 @@ def test_a_depth_cache_hit_frames_without_running_isnet_again(monkeypatch, tmp_p
     assert len(runs) == 1, f"ISNet ran {len(runs)} times"
     assert plans[0] == plans[1]
     assert plans[0].start.center_x_px != pytest.approx(depth.shape[1] / 2)  # it was framed
+
+
+def test_a_crop_of_huge_numbers_is_said_in_readable_numbers(tmp_path):
+    """1e300 as a crop's centre was printed as its 301 digits, four times, in one line."""
+    path = write(tmp_path / "m.json", {"images": {"a.jpg": {
+        "start": {"center_x": 1e300, "center_y": 500, "width": 1e300},
+        "end": {"center_x": 400, "center_y": 500, "width": 300}}}})
+    entry = load_manifest(path).entry("a.jpg")
+    with pytest.raises(ManifestError) as caught:
+        entry.plan(910, 1137, 819, 16 / 9, "linear")
+    message = str(caught.value)
+    assert "image 'a.jpg': field 'start': crop [" in message and len(message) < 300, message
+    assert "e+300" in message and "lies outside the 910x1137 photo" in message

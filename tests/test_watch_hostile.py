@@ -622,6 +622,67 @@ def test_workers_forked_after_the_start_up_model_check_make_their_clips(tmp_path
     assert "depth from onnx (depth-anything-v2-small)" in daemon_log(tmp_path)
 
 
+def assert_held_then_made(tmp_path: Path, inbox: Path, outbox: Path, daemon, mend) -> str:
+    """b.jpg dropped while the run is at fault stays in the inbox (not in failed/), and is made
+    once `mend()` has put the fault right; the daemon's log."""
+    drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
+    wait_for(lambda: "no photo is taken until that is mended" in daemon_log(tmp_path)
+             or (inbox / "failed").exists(), 240, "b.jpg held or failed")
+    time.sleep(2.0)  # the daemon's loop runs on meanwhile
+    assert daemon.poll() is None, "the daemon died"
+    assert not (inbox / "failed").exists(), "b.jpg was failed for the run's fault"
+    assert (inbox / "b.jpg").is_file() and not (outbox / "b.mp4").exists()
+    mend()
+    wait_for(lambda: (inbox / "done" / "b.jpg").is_file(), 240, "b.jpg once mended")
+    assert (outbox / "b.mp4").is_file()
+    log = daemon_log(tmp_path)
+    assert "taking photos again" in log and "Traceback" not in log, log
+    return log
+
+
+def test_an_outbox_made_read_only_while_the_daemon_runs_keeps_its_photos_queued(tmp_path):
+    """Its output folder made read-only, every later photo went to failed/ (its clip could not
+    be made there), for its owner to move back one by one."""
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: (inbox / "done" / "a.jpg").is_file(), 240, "a.jpg")
+        # immutable: no file can be made in it, even by root, whom permission bits let through
+        if subprocess.run(["chattr", "+i", str(outbox)], capture_output=True).returncode:
+            pytest.skip("chattr +i is not allowed here")
+        try:
+            log = assert_held_then_made(
+                tmp_path, inbox, outbox, daemon,
+                lambda: subprocess.run(["chattr", "-i", str(outbox)], check=True))
+        finally:
+            subprocess.run(["chattr", "-i", str(outbox)], check=False)
+    finally:
+        assert stop(daemon) == 0
+    assert "files can no longer be made in the output folder" in log, log
+
+
+def test_a_model_damaged_while_the_daemon_runs_keeps_its_photos_queued(tmp_path, monkeypatch):
+    """A model file damaged while the daemon ran failed every later photo into failed/."""
+    from .test_models import tiny_depth_model
+
+    inbox, outbox, preset = folders(tmp_path)
+    model = tmp_path / "models" / "depth_anything_v2_small.onnx"
+    model.parent.mkdir()
+    model.write_bytes(tiny_depth_model())
+    monkeypatch.setenv("KBBATCH_MODELS", str(model.parent))
+    daemon = start_daemon(inbox, outbox, preset, "--depth", "onnx")
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: (inbox / "done" / "a.jpg").is_file(), 240, "a.jpg")
+        model.write_bytes(b"half a download")
+        log = assert_held_then_made(tmp_path, inbox, outbox, daemon,
+                                    lambda: model.write_bytes(tiny_depth_model()))
+    finally:
+        assert stop(daemon) == 0
+    assert f"{model}: model depth-anything-v2-small cannot be loaded" in log, log
+
+
 @pytest.mark.parametrize("removed", ["outbox", "inbox"])
 def test_a_folder_removed_under_the_daemon_stops_it_and_fails_no_photo(tmp_path, removed):
     """Its output folder removed, the daemon filed every later photo as failed (its clip found
@@ -922,6 +983,38 @@ def test_a_clip_of_a_photo_replaced_before_its_read_is_journaled_under_the_bytes
     assert not journal.is_up_to_date(photo, source_fingerprint(photo), settings,
                                      outbox / "X.mp4", content_a)
     journal.close()
+
+
+def test_with_keep_sources_a_depth_map_saved_later_remakes_the_clip_and_clears_its_failure(
+        tmp_path):
+    """--keep-sources: a depth map saved beside a made photo was taken only after a restart;
+    a photo made after it failed kept its failure report, which said it had failed."""
+    inbox, outbox, preset = folders(tmp_path)
+    daemon = start_daemon(inbox, outbox, preset, "--keep-sources", "--depth", "auto")
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        wait_for(lambda: finished_jobs(outbox) == 1, 240, "a.jpg's first clip")
+        first = (outbox / "a.mp4").read_bytes()
+        (inbox / "b.jpg").write_text("not a photo yet")
+        os.utime(inbox / "b.jpg", (time.time() - 3600,) * 2)  # not still being written
+        report = inbox / "failed" / "b.jpg.error.json"
+        wait_for(report.is_file, 120, "b.jpg's failure report")
+        ramp = np.tile(np.linspace(1000, 60000, 320).astype(np.uint16), (180, 1))
+        cv2.imwrite(str(inbox / "a.depth.png"), ramp)
+        looked_again = "a.jpg: its depth map a.depth.png was saved; looked at again"
+        wait_for(lambda: "done a.jpg" in daemon_log(tmp_path).partition(looked_again)[2], 240,
+                 "a.jpg's clip made again with its map")
+        drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
+        wait_for(lambda: (outbox / "b.mp4").is_file() and not report.exists(), 240,
+                 "b.jpg made and its failure report removed")
+    finally:
+        assert stop(daemon) == 0
+    assert (outbox / "a.mp4").read_bytes() != first
+    log = daemon_log(tmp_path)
+    assert "a.jpg: depth from file" in log, log
+    assert sorted(p.name for p in inbox.iterdir()) == ["a.depth.png", "a.jpg", "b.jpg",
+                                                       "failed"]
+    assert not list((inbox / "failed").iterdir())
 
 
 def test_a_daemon_killed_while_it_remakes_an_edited_photo_makes_it_again(tmp_path):

@@ -63,6 +63,7 @@ def find_depth_file(photo_path: Path) -> Path | None:
         return (DEPTH_FILE_KINDS.index(kind), DEPTH_FILE_SUFFIXES.index(f".{suffix}"),
                 name != name.lower())
 
+    usable = []
     for name in sorted(names, key=preference):
         candidate = photo_path.with_name(name)
         if not candidate.is_file():
@@ -70,8 +71,19 @@ def find_depth_file(photo_path: Path) -> Path | None:
                 _say_not_a_file(str(candidate), os.lstat(candidate).st_ino, str(photo_path))
             continue
         if not is_another_photos_map(candidate, photo_path):
-            return candidate
-    return None
+            usable.append(name)
+    if len(usable) > 1:
+        _say_one_of_several(str(photo_path), tuple(usable))
+    return photo_path.with_name(usable[0]) if usable else None
+
+
+@functools.lru_cache(maxsize=64)
+def _say_one_of_several(photo_name: str, map_names: tuple[str, ...]) -> None:
+    """Said once: with a depth and a disparity map beside a photo, one was used without a
+    word, and the clip looked wrong if the user had meant the other."""
+    log.warning("%s: %s are maps of this photo; %s is used (depth before disparity, PNG "
+                "before .npy before .exr): remove the others", photo_name,
+                " and ".join(map_names), map_names[0])
 
 
 @functools.lru_cache(maxsize=64)
@@ -182,6 +194,8 @@ def load_map(path: Path) -> np.ndarray:
         data = data[..., 0]
     if data.ndim != 2:
         raise DepthError(f"{path}: expected a 2D map, got shape {data.shape}")
+    if data.dtype == np.bool_:  # read as 0 and 1 it was "constant", which it is not
+        raise DepthError(f"{path}: holds true/false values (a mask?), not depths")
     try:
         return data.astype(np.float32)
     except (TypeError, ValueError) as error:  # records, strings: no depth
