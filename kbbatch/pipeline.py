@@ -688,8 +688,12 @@ def make_clip(
     options: ClipOptions,
     show_progress: bool = True,
     entry: ManifestEntry | None = None,
+    mark: str | None = None,
 ) -> ClipResult:
-    """Render one photo into one clip; failures are returned, never raised."""
+    """Render one photo into one clip; failures are returned, never raised. mark: the mark
+    the clip carries where the caller knows it better than this process (a Ray worker's entry
+    is rewritten to its scratch copies: the mark it made of that was no clip's, and a lost
+    journal's clips were never adopted); else own_clip_mark."""
     started = time.perf_counter()
     timings: dict[str, float] = {}
     result = ClipResult(str(source), None, "failed", 0.0)
@@ -723,9 +727,8 @@ def make_clip(
             frames = render_clip_frames(prepared, preset, options.threads, bar.update,
                                         result.device)
             with atomic_output(output, CLIP_SUFFIX, make_folder=False) as temp_path:
-                result.frames = encode_frames(temp_path, frames, preset,
-                                              own_clip_mark(source, result.content, *given,
-                                                            entry))
+                result.frames = encode_frames(temp_path, frames, preset, mark or own_clip_mark(
+                    source, result.content, *given, entry))
         timings["frames+encode"] = time.perf_counter() - clock
         # The depth images after the clip: written first, a run killed mid-encode left the new
         # photo's maps beside no clip (or beside the old photo's clip).

@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from kbbatch.depth.file import find_depth_file
+from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
     atomic_output,
     depth_image_names,
@@ -51,6 +52,7 @@ from kbbatch.pipeline import (
     apply_entry,
     joined_notes,
     make_clip,
+    own_clip_mark,
     remove_stale_depth_images,
     remove_stale_scratch,
     users_files_note,
@@ -118,6 +120,7 @@ class PhotoPayload:
     depth_files: dict[str, bytes]  # file name -> bytes (a sidecar map, a manifest's 'depth')
     clip_name: str
     entry: ManifestEntry | None
+    mark: str | None = None  # the clip's mark, made on the driver (make_clip)
 
 
 @dataclass(frozen=True)
@@ -128,6 +131,7 @@ class SharedPaths:
 
     job: ClipJob
     inputs: dict[str, str]  # path -> "size:mtime_ns" on the driver (photo, depth files)
+    mark: str | None = None  # the clip's mark, made on the driver (make_clip)
 
 
 @dataclass(frozen=True)
@@ -155,14 +159,14 @@ def depth_files_of(job: ClipJob) -> list[Path]:
     return files
 
 
-def payload_for(job: ClipJob) -> PhotoPayload:
+def payload_for(job: ClipJob, mark: str | None) -> PhotoPayload:
     """Read a job's photo and depth files on the driver (a failure here is the worker's too)."""
     depth_files = {path.name: path.read_bytes() for path in depth_files_of(job)}
     return PhotoPayload(job.source.name, job.source.read_bytes(), depth_files, job.output.name,
-                        job.entry)
+                        job.entry, mark)
 
 
-def shared_paths_for(job: ClipJob) -> SharedPaths:
+def shared_paths_for(job: ClipJob, mark: str | None) -> SharedPaths:
     """A job's paths, made absolute (a worker's working folder is not the driver's), and its
     input files' size and time on the driver (nothing is read)."""
     entry = job.entry
@@ -170,7 +174,7 @@ def shared_paths_for(job: ClipJob) -> SharedPaths:
         entry = replace(entry, manifest=entry.manifest.absolute())
     job = replace(job, source=job.source.absolute(), output=job.output.absolute(), entry=entry)
     inputs = {str(path): source_fingerprint(path) for path in [job.source, *depth_files_of(job)]}
-    return SharedPaths(job, inputs)
+    return SharedPaths(job, inputs, mark)
 
 
 def worker_node() -> str:
@@ -183,11 +187,12 @@ def worker_node() -> str:
 
 
 def clip_on_worker(source: Path, output: Path, preset: Preset, options: ClipOptions,
-                   entry: ManifestEntry | None) -> ClipResult:
+                   entry: ManifestEntry | None, mark: str | None) -> ClipResult:
     """make_clip as every Ray task runs it, after removing the frame stores of workers killed
     mid-clip on this node."""
     remove_stale_scratch()
-    return make_clip(source, output, preset, options, show_progress=False, entry=entry)
+    return make_clip(source, output, preset, options, show_progress=False, entry=entry,
+                     mark=mark)
 
 
 def make_clip_from_bytes(payload: PhotoPayload, preset: Preset, options: ClipOptions
@@ -205,7 +210,8 @@ def make_clip_from_bytes(payload: PhotoPayload, preset: Preset, options: ClipOpt
         if entry is not None and entry.depth_file is not None:
             data = dict(entry.data, depth=entry.depth_file.name)
             entry = replace(entry, data=data, manifest=inbox / entry.manifest.name)
-        result = clip_on_worker(source, outbox / payload.clip_name, preset, options, entry)
+        result = clip_on_worker(source, outbox / payload.clip_name, preset, options, entry,
+                                payload.mark)
         files = {}
         if result.status == "done":
             files = {path.name: path.read_bytes() for path in outbox.iterdir() if path.is_file()}
@@ -222,7 +228,7 @@ def make_clip_in_place(task: SharedPaths, preset: Preset, options: ClipOptions
     if problem is not None:
         return WorkerOutcome(ClipResult(str(job.source), None, "failed", 0.0, error=problem), {},
                              node, os.getpid())
-    result = clip_on_worker(job.source, job.output, preset, options, job.entry)
+    result = clip_on_worker(job.source, job.output, preset, options, job.entry, task.mark)
     clip_stat = None
     if result.status == "done":
         with contextlib.suppress(OSError):  # renamed, then gone: the driver's check fails it
@@ -419,6 +425,11 @@ class RayExecutor:
                ) -> tuple[object, int]:
         """Start a job's task: its object ref and the bytes sent (0 unless bytes_moved), or
         the photo's failure where the driver cannot read (or stat) it."""
+        try:  # of the job as given: what follows rewrites its entry for the worker
+            mark = own_clip_mark(job.source, job.content or file_sha256(job.source), preset,
+                                 options, job.entry)
+        except OSError as error:
+            return unreadable_result(job, error), 0
         if job.entry is not None and "preset" in job.entry.data:
             # The entry's preset file lies beside the manifest on the driver, which a worker
             # may not see: it travels loaded (a bad one is the worker's to report, as here).
@@ -427,7 +438,7 @@ class RayExecutor:
                 data = {k: v for k, v in job.entry.data.items() if k != "preset"}
                 job = replace(job, entry=replace(job.entry, data=data))
         try:
-            task = shared_paths_for(job) if self.shared_fs else payload_for(job)
+            task = shared_paths_for(job, mark) if self.shared_fs else payload_for(job, mark)
         except OSError as error:
             return unreadable_result(job, error), 0
         arguments = (task, preset, self.worker_options(options))

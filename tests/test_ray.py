@@ -457,8 +457,10 @@ def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_se
     from PIL import Image
 
     from kbbatch.depth import DepthOptions
+    from kbbatch.encode import read_clip_mark
+    from kbbatch.fingerprint import file_sha256
     from kbbatch.manifest import load_manifest
-    from kbbatch.pipeline import ClipJob
+    from kbbatch.pipeline import ClipJob, clip_fingerprints
     from kbbatch.ray_executor import make_clip_from_bytes
 
     from .conftest import textured_image
@@ -468,8 +470,11 @@ def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_se
     look.parent.mkdir()
     look.write_text('base = "preview"\nwidth_px = 256\nheight_px = 144\nfps = 10\n'
                     'duration_s = 0.4\n')
+    ramp = np.tile(np.linspace(1000, 60000, 320).astype(np.uint16), (180, 1))
+    cv2.imwrite(str(tmp_path / "m" / "a-map.depth.png"), ramp)
     (tmp_path / "m" / "manifest.json").write_text(
-        '{"version": 1, "images": {"a.jpg": {"preset": "look.toml", "duration_s": 0.3}}}')
+        '{"version": 1, "images": {"a.jpg": {"preset": "look.toml", "duration_s": 0.3, '
+        '"depth": "a-map.depth.png"}}}')
     entry = load_manifest(tmp_path / "m" / "manifest.json").entry("a.jpg")
     sent = []
 
@@ -483,6 +488,9 @@ def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_se
     RayExecutor().submit(RemoteClip(), job, load_preset("slideshow"), options)
     [(payload, preset, worker_options)] = sent
     assert (preset.width_px, preset.duration_s) == (256, 0.3)
+    content = file_sha256(tmp_path / "a.jpg")
+    wanted = clip_fingerprints(tmp_path / "a.jpg", content, load_preset("slideshow"), options,
+                               entry)
     look.unlink()
     monkeypatch.chdir("/")
     outcome = make_clip_from_bytes(payload, preset, worker_options)
@@ -490,6 +498,9 @@ def test_a_manifest_entrys_preset_file_travels_loaded_to_a_worker_that_cannot_se
     clip = tmp_path / "clip.mp4"
     clip.write_bytes(outcome.files["a.mp4"])
     assert probe(clip).width_px == 256
+    # Marked as the driver marks the clip of this entry (the worker's copy of it names its
+    # scratch map and no preset file): after a lost journal the clip is known by its mark.
+    assert read_clip_mark(clip) == (content, wanted[0])
 
 
 def test_an_address_with_no_ray_head_is_refused_at_once(photo_folder, tmp_path):
