@@ -639,6 +639,14 @@ def existing_manifest(manifest_path: Path) -> Manifest | None:
 
     if not manifest_path.exists() and not manifest_path.is_symlink():
         return None
+    if not manifest_path.exists():  # a link to a manifest not made yet: made through it,
+        # as `review` does (it was refused as "not a regular file")
+        target = Path(os.path.realpath(manifest_path))
+        if target.parent.is_dir() and not os.path.lexists(target):
+            return None
+        raise OutputFolderError(f"{manifest_path}: a link to {target}, which cannot be made "
+                                "(its folder is missing, or the link loops); give -o another "
+                                "file")
     if not manifest_path.is_file():  # a pipe would block the read for good
         raise OutputFolderError(f"{manifest_path}: not a regular file; not replaced: give -o "
                                 "another file")

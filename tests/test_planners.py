@@ -678,6 +678,17 @@ def test_plan_into_an_existing_file_never_loses_what_is_there(tmp_path, quick_pr
     os.mkfifo(tmp_path / "pipe.json")  # reading it to merge blocked for good
     with pytest.raises(OutputFolderError, match=r"pipe.json: not a regular file; not replaced"):
         plan_folder(folder, tmp_path / "pipe.json", quick_preset, options, show_progress=False)
+    # a link to a manifest not made yet is made through, as `review` does ("not a regular
+    # file" before); one whose target cannot be made says why
+    (tmp_path / "new.json").symlink_to(repository / "new.json")
+    plan_folder(folder, tmp_path / "new.json", quick_preset, options, show_progress=False)
+    assert (tmp_path / "new.json").is_symlink()
+    assert set(json.loads((repository / "new.json").read_text())["images"]) >= {"a.jpg"}
+    (tmp_path / "nowhere.json").symlink_to(tmp_path / "no-folder" / "m.json")
+    with pytest.raises(OutputFolderError, match=r"nowhere.json: a link to .*no-folder/m.json, "
+                       r"which cannot be made"):
+        plan_folder(folder, tmp_path / "nowhere.json", quick_preset, options,
+                    show_progress=False)
 
 
 def test_a_manifest_keeps_its_permissions_and_a_read_only_one_is_not_replaced(

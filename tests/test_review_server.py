@@ -259,6 +259,40 @@ def test_a_photo_removed_while_the_page_is_open_is_named(served, folder):
         assert gone.status == 404 and "wide.png: no longer there" in gone.json()["error"], kind
 
 
+@pytest.mark.parametrize("damage", ["removed", "truncated"])
+def test_one_photo_removed_or_damaged_fails_alone_and_the_page_still_loads(served, folder,
+                                                                           damage):
+    """A photo with crops in the manifest, removed or cut short while the page was open: the
+    photo list answered 404 (or 422) for every photo until a restart, and nothing could be
+    reviewed."""
+    served.wait_planned()
+    assert served.post("/api/save", {"entries": {"wide.png": EDITED}}).status == 200
+    if damage == "removed":
+        (folder / "wide.png").unlink()
+    else:
+        data = (folder / "wide.png").read_bytes()
+        (folder / "wide.png").write_bytes(data[: len(data) // 3])
+    reply = served.get("/api/photos")
+    assert reply.status == 200, reply.body
+    photos = {p["name"]: p for p in reply.json()["photos"]}
+    assert photos["wide.png"]["status"] == "failed"
+    assert "wide.png" in photos["wide.png"]["error"]
+    assert photos["tall.png"]["status"] == "ready"
+
+
+def test_a_photo_replaced_by_a_link_out_of_the_folder_is_not_served(served, folder, tmp_path):
+    """The check that a photo lies in the folder ran at the start only: a photo replaced by a
+    link to a file outside it later was served, picture and depth."""
+    served.wait_planned()
+    (folder / "tall.png").unlink()
+    os.symlink(tmp_path / "outside.png", folder / "tall.png")
+    for kind in ("image", "depth"):
+        reply = served.get(f"/api/photos/tall.png/{kind}")
+        assert reply.status == 404, kind
+        assert "tall.png: now a link to a file outside" in reply.json()["error"]
+        assert reply.headers["content-type"] == "application/json"
+
+
 TRAVERSALS = [
     "/api/photos/..%2fsecret.txt/image",
     "/api/photos/..%2F..%2Fsecret.txt/image",

@@ -265,7 +265,13 @@ class ReviewSession:
     def _photo(self, name: Any) -> PhotoState:
         if not isinstance(name, str) or name not in self.photos:
             raise RequestError(404, f"no photo {name!r} in {self.folder}")
-        return self.photos[name]
+        state = self.photos[name]
+        # looked at each time: a photo replaced by a link out of the folder after the start
+        # was served (the check ran only at the start)
+        if not state.path.resolve().is_relative_to(self.folder):
+            raise RequestError(404, f"{name}: now a link to a file outside {self.folder}; "
+                                    "not served")
+        return state
 
     def _settings(self, name: str, data: dict[str, Any] | None) -> tuple[Preset, ClipOptions]:
         if not data:
@@ -390,6 +396,11 @@ class ReviewSession:
                 result["source"] = "manifest"
             except ManifestError as error:
                 result |= {"status": "failed", "error": str(error)}
+            except RequestError as error:  # that photo's failure, not the list's: one
+                # photo removed or damaged while the page was open emptied the whole page
+                result |= {"status": "failed", "error": error.message}
+            except OSError as error:
+                result |= {"status": "failed", "error": unreadable_words(error, name)}
         return result
 
     def overview(self) -> dict[str, Any]:
@@ -540,6 +551,13 @@ def manifest_lock(manifest: Path):
         os.close(descriptor)
 
 
+def unreadable_words(error: OSError, name: str) -> str:
+    """What to say of a photo or map removed or made unreadable while the page is open."""
+    if isinstance(error, FileNotFoundError):
+        return f"{error.filename or name}: no longer there (removed while the page was open?)"
+    return f"{error.filename or name}: cannot be read ({error.strerror or error})"
+
+
 def _json_body() -> dict[str, Any]:
     """The request's JSON object, read by the manifest's rules (no NaN, huge numbers, repeated
     keys or nesting deep enough to exhaust the stack: that one was a 500)."""
@@ -610,11 +628,9 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
     @app.errorhandler(OSError)
     def unreadable(error: OSError) -> tuple[Response, int]:
         """A photo or map removed or made unreadable while the page is open: say which."""
-        name = error.filename or "a file"
-        if isinstance(error, FileNotFoundError):
-            return jsonify(error=f"{name}: no longer there (removed while the page was "
-                                 "open?); reload the page"), 404
-        return jsonify(error=f"{name}: cannot be read ({error.strerror or error})"), 422
+        gone = isinstance(error, FileNotFoundError)
+        return jsonify(error=unreadable_words(error, "a file") + ("; reload the page" if gone
+                                                                  else "")), 404 if gone else 422
 
     @app.errorhandler(Exception)
     def unexpected(error: Exception) -> tuple[Response, int]:
