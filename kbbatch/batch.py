@@ -100,6 +100,10 @@ class RunReport:
     report listed only the clips it made, and looked complete."""
     unwritten: str | None = None
     """Why the report itself could not be written, if so (the run is then incomplete)."""
+    made_before: list[dict] = field(default_factory=list)
+    """While the run is unfinished: what earlier reports said of the clips it has not reached
+    (a run killed outright left a report without them, and the next run reported each clip
+    it skipped as 0 frames, with no plan)."""
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -122,13 +126,16 @@ class RunReport:
              "stopped_by": self.stopped_by, "not_started": self.not_started,
              "notes": self.notes, "device": self.device,
              "onnx_providers": self.onnx_providers,
-             "clips": [asdict(r) for r in self.results]}, indent=2,
+             "clips": [asdict(r) for r in self.results]}
+            | ({"made_before": self.made_before} if self.made_before else {}), indent=2,
         )
 
     def write(self, output_folder: Path) -> str | None:
         """Written atomically into output_folder; why not, if it could not be."""
         try:
-            with atomic_output(output_folder / REPORT_NAME, ".json") as temp_path:
+            # not made again: a folder removed mid-run is the user's doing (see FOLDER_GONE)
+            with atomic_output(output_folder / REPORT_NAME, ".json",
+                               make_folder=False) as temp_path:
                 temp_path.write_text(self.to_json(), encoding="utf-8")
         except OSError as error:
             return (f"{output_folder / REPORT_NAME}: report could not be written "
@@ -152,9 +159,10 @@ def _last_report(output_folder: Path) -> dict:
 
 def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
     """The clips the folder's last report describes as made (or carried), by source and clip."""
-    clips = _last_report(output_folder).get("clips")
+    report = _last_report(output_folder)
+    clips = report.get("made_before"), report.get("clips")  # the run's own last
     try:
-        return {(clip["source"], clip["output"]): clip for clip in clips
+        return {(clip["source"], clip["output"]): clip for listed in clips for clip in listed or ()
                 if isinstance(clip, dict) and clip.get("status") in ("done", "skipped")
                 and clip.get("plan")}
     except (KeyError, TypeError):
@@ -404,10 +412,20 @@ def run_folder(
         lock.release()
         raise OutputFolderError(str(error)) from error
     made_before = _clips_of_last_report(output_folder)
-    # a report of the run as it starts: a run killed outright (kill -9, a power cut) leaves
-    # it, dated and unfinished, not an earlier run's report that looks like this one's
-    RunReport(str(folder_key(folder)), str(output_folder), preset.name, [], notes,
-              device=options.device, started_at=started_at).write(output_folder)
+    written_at = [0.0]
+
+    def report_so_far(every_s: float = REPORT_EVERY_S) -> None:
+        """The report of the run unfinished: a run killed outright (kill -9, a power cut)
+        leaves it, dated and unfinished, with the clips made so far, not an earlier run's
+        report that looks like this one's."""
+        if time.monotonic() - written_at[0] < every_s:
+            return
+        RunReport(str(folder_key(folder)), str(output_folder), preset.name, list(results),
+                  notes, device=options.device, started_at=started_at,
+                  made_before=list(made_before.values())).write(output_folder)
+        written_at[0] = time.monotonic()
+
+    report_so_far(every_s=0.0)
     names = output_names(scan.photos)
     bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
                        disable=not show_progress)
@@ -430,6 +448,7 @@ def run_folder(
             if isinstance(job, ClipResult):  # skipped, or failed before it could start
                 results.append(_as_made_before(job, made_before))
                 bar.update()
+                report_so_far()
                 if job.status == "no_space":
                     stop["by"] = DISK_FULL
                 if (fail_fast and job.status == "failed") or job.status == "no_space":
@@ -448,6 +467,7 @@ def run_folder(
                 for job, result in rendered:
                     results.append(finish_job(journal, job, result))
                     bar.update()
+                    report_so_far()
                     if results[-1].status == "no_space":  # the photos after would fail too
                         stop["by"] = DISK_FULL
                     if fail_fast and results[-1].status == "failed":
@@ -488,6 +508,10 @@ def run_folder(
             lock.release()
     return report
 
+
+REPORT_EVERY_S = 10.0
+"""The unfinished run's report is written again at most this often as clips finish (each write
+is the whole report: after every clip, a run of thousands would write gigabytes)."""
 
 FOLDER_GONE = "the output folder removed or renamed"
 DISK_FULL = "a full output disk"

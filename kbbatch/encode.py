@@ -241,12 +241,18 @@ def encoder_command(path: Path, preset: Preset, container: str = "mp4",
     }
     if container == "mp4":
         options["movflags"] = "+faststart"
+        if preset.codec in HEVC_ENCODERS:  # ffmpeg tags HEVC `hev1`, which Apple's players
+            options["tag:v"] = "hvc1"  # and editors refuse: they play `hvc1` only
     if comment is not None:
         options["metadata"] = f"comment={comment}"
     out = ffmpeg.output(stream, OUTPUT_PLACEHOLDER, **options).global_args(
         "-loglevel", "error", "-nostdin")
     command = ffmpeg.compile(out.overwrite_output(), cmd=ffmpeg_exe())
     return [str(path) if arg == OUTPUT_PLACEHOLDER else arg for arg in command]
+
+
+HEVC_ENCODERS = ("libx265", "hevc_nvenc")
+"""Encoders of HEVC, whose MP4s are tagged `hvc1` (QuickTime, Final Cut and iOS play no other)."""
 
 
 KILL_REASONS = {

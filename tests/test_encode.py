@@ -293,3 +293,15 @@ def test_a_ctrl_c_while_the_encoder_starts_leaves_no_encoder_and_no_partial_clip
         for process in started:
             process.kill()
             process.wait()
+
+
+def test_an_hevc_clip_is_tagged_hvc1_for_apples_players(tmp_path):
+    """ffmpeg tags HEVC in MP4 `hev1`, which QuickTime, Final Cut and iOS refuse to play."""
+    preset = with_overrides(load_preset("preview"), duration_s=0.2, fps=10.0)
+    preset = replace(preset, codec="libx265", encoder_preset="ultrafast")
+    frame = np.full((preset.height_px, preset.width_px, 3), 128, np.uint8)
+    path = tmp_path / "hevc.mp4"
+    encode_frames(path, [frame] * preset.frames_total, preset)
+    listing = subprocess.run([ffmpeg_exe(), "-hide_banner", "-i", str(path)],
+                             capture_output=True, text=True).stderr
+    assert "hevc" in listing and "(hvc1 /" in listing, listing

@@ -721,6 +721,39 @@ def test_kill_9_of_a_batch_leaves_nothing_after_the_next_run(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_run_killed_outright_keeps_what_the_report_said_of_the_clips_made_before(tmp_path):
+    """The killed run's report had no clips, so the next run reported every clip it skipped
+    as 0 frames, with no plan and no depth source, for good."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1, height=360, width=640)
+    slow = ("--duration", "20", "--fps", "25")
+    first = subprocess.run([*CLI, str(folder), "-o", str(out), "--depth", "ramp", "--planner",
+                            "center", "--preset", "preview", "--quiet", *slow],
+                           capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    made = json.loads((out / "kbbatch-report.json").read_text())["clips"][0]
+    assert made["status"] == "done" and made["frames"] > 0 and made["plan"]
+    photo(folder / "b.jpg", seed=2, height=360, width=640)
+    process = start_batch(folder, out, *slow)
+    try:
+        wait_for(lambda: encoding(out), 180, "b's clip being encoded")
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.wait(timeout=60)
+    killed = json.loads((out / "kbbatch-report.json").read_text())
+    assert killed["finished_at"] is None
+    rerun = subprocess.run([*CLI, str(folder), "-o", str(out), "--depth", "ramp", "--planner",
+                            "center", "--preset", "preview", "--quiet", *slow],
+                           capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    clips = {Path(c["source"]).name: c for c in
+             json.loads((out / "kbbatch-report.json").read_text())["clips"]}
+    assert clips["a.jpg"]["status"] == "skipped" and clips["b.jpg"]["status"] == "done"
+    for field in ("frames", "plan", "depth_backend", "preset"):
+        assert clips["a.jpg"][field] == made[field], field
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
 def test_sigterm_and_ctrl_c_stop_a_batch_cleanly(tmp_path, stop_signal):
     """A hang-up (an SSH session dropped) stops it as SIGTERM does: it killed the batch at
