@@ -85,6 +85,9 @@ from kbbatch.ray_executor import RayClipPool, RayExecutor
 log = logging.getLogger("kbbatch.watch")
 
 FAILED_FOLDER = "failed"
+INBOX_NOTE = ".kbbatch-inbox.json"
+"""In the output folder: the inbox of the daemon that writes there (or last did), for `kbbatch
+status` to count the photos waiting in it."""
 TEMPORARY_SUFFIXES = (".tmp", ".part", ".crdownload", ".download", ".partial", "~")
 LOOP_INTERVAL_S = 0.2
 PR_SET_PDEATHSIG = 1
@@ -287,6 +290,8 @@ class InboxTracker:
         self.removals: queue.Queue[Path] = queue.Queue()  # filled by the observer
         self.removed: set[Path] = set()  # taken photos deleted since (their clips in flight)
         self.maps: dict[Path, float] = {}  # depth maps in the inbox: their last event's time
+        self.renames: queue.Queue[tuple[Path, Path]] = queue.Queue()  # filled by the observer
+        self.renamed_to: dict[Path, Path] = {}  # photos renamed in the inbox: old -> new path
 
     def notice(self, path: Path, renamed: bool = False) -> None:
         """A file event (from any thread), or a photo handed back to be taken again."""
@@ -296,10 +301,19 @@ class InboxTracker:
         """A file was deleted from the inbox (from the observer's thread)."""
         self.removals.put(path)
 
+    def notice_rename(self, source: Path, destination: Path) -> None:
+        """A file was renamed (from the observer's thread): a photo renamed while its clip was
+        made got a second clip under its new name."""
+        self.renames.put((source, destination))
+
     def forget(self, path: Path) -> None:
         """The photo was taken (or filed away): no longer waiting."""
         del self.arrivals[path]
         self.removed.discard(path)
+
+    def forget_if_waiting(self, path: Path) -> None:
+        if path in self.arrivals:
+            self.forget(path)
 
     def collect_events(self) -> None:
         while True:
@@ -307,6 +321,16 @@ class InboxTracker:
                 self.removed.add(self.removals.get_nowait())
             except queue.Empty:
                 break
+        while True:
+            try:
+                source, destination = self.renames.get_nowait()
+            except queue.Empty:
+                break
+            if source.parent == self.inbox and destination.parent == self.inbox:
+                for old, new in list(self.renamed_to.items()):  # renamed again
+                    if new == source:
+                        self.renamed_to[old] = destination
+                self.renamed_to[source] = destination
         now = time.monotonic()
         while True:
             try:
@@ -498,6 +522,9 @@ class JobRunner:
         if not self.has_space() or self.fault_remains():
             return
         busy = {job.path for job in self.in_flight.values()} | set(self.suspects)
+        # renamed while its clip is made: that clip becomes its own once finished
+        busy |= {inbox.renamed_to[job.path] for job in self.in_flight.values()
+                 if job.path in inbox.renamed_to}
         for path in sorted(inbox.arrivals, key=lambda p: (p not in self.worker_deaths, p)):
             if len(self.in_flight) >= s.jobs or stopping.is_set():
                 return
@@ -569,11 +596,16 @@ class JobRunner:
         others = [p for p in scan_folder(self.settings.inbox).photos if p != source]
         return output_names([source, *others])[source]
 
-    def finish_completed(self, removed: set[Path] | None = None) -> None:
+    def finish_completed(self, removed: set[Path] | None = None,
+                         renamed: dict[Path, Path] | None = None,
+                         forget: Callable[[Path], None] | None = None) -> None:
         """Record the clips that are finished. removed: photos deleted from the inbox since
         they were taken (a file now at such a path is another photo); deletions of photos no
-        longer in flight (the moves to done/ among them) are dropped from it."""
+        longer in flight (the moves to done/ among them) are dropped from it. renamed: photos
+        renamed in the inbox (old path -> new), whose clip is the renamed photo's, taken no
+        more (forget)."""
         removed = set() if removed is None else removed
+        renamed = {} if renamed is None else renamed
         if any(f.done() and isinstance(f.exception(), BrokenProcessPool)
                for f in self.in_flight):
             self.recover_from_worker_death()
@@ -646,6 +678,15 @@ class JobRunner:
             self.journal.finish(job.path, result.status, result.seconds, result.error, clip,
                                 result.content)
             del self.in_flight[future]
+            now_at = self.renamed_photo(job, result, renamed)
+            if now_at is not None:  # the same photo under its new name: the clip is its
+                self.journal.moved(job.path, now_at)
+                if forget is not None:
+                    forget(now_at)
+                log.info("%s was renamed %s while its clip was made: the clip is the renamed "
+                         "photo's",
+                         job.path.name, now_at.name)
+                job = replace(job, path=now_at)
             if result.status == "done" and (replaced or not job.path.exists()):
                 # Deleted while its frames rendered: its clip no longer belongs to the inbox
                 # path, or a different photo dropped there later would take the clip's name
@@ -674,12 +715,27 @@ class JobRunner:
             else:
                 self.file_failure(job.path, result)
         in_flight = {job.path for job in self.in_flight.values()}
+        for path in set(renamed) - in_flight:
+            del renamed[path]
         for path in removed - in_flight:
             if not os.path.lexists(path) and self.journal.done_photo_removed(path):
                 log.info("%s was removed from the inbox; its clip %s stays, and a photo saved "
                          "later under its name gets a clip of its own", path.name,
                          self.journal.get(path.with_name(f"{path.name}{GONE_MARK}")).output)
         removed.intersection_update(in_flight)
+
+    def renamed_photo(self, job: InFlight, result: ClipResult, renamed: dict[Path, Path]
+                      ) -> Path | None:
+        """Where a photo renamed in the inbox while its clip was made now is: the same bytes
+        at its new name, the old one gone."""
+        now_at = renamed.get(job.path)
+        if (result.status != "done" or now_at is None or os.path.lexists(job.path)
+                or not now_at.is_file()):
+            return None
+        try:
+            return now_at if file_sha256(now_at) == (result.content or job.content) else None
+        except OSError:
+            return None
 
     def wait_for_space(self, result: ClipResult) -> None:
         """No photo is taken until the disk that was full (the output's, or the temporary
@@ -960,6 +1016,7 @@ class Daemon:
         if not s.inbox.is_dir() and not s.inbox.parent.is_dir():
             raise OutputFolderError(f"{s.inbox}: no such inbox, nor its folder "
                                     f"{s.inbox.parent} (a share not mounted yet?)")
+        made = [folder for folder in (s.outbox, *s.outbox.parents) if not folder.exists()]
         check_writable(s.outbox)
         # The output folder's lock first: a daemon refused for a busy one made the inbox it
         # named and left it behind.
@@ -982,7 +1039,13 @@ class Daemon:
                     raise OutputFolderError(f"{where}: not a folder; the daemon moves finished "
                                             f"photos into {name}/ in the inbox: move this file "
                                             "away")
-            inbox_lock = FolderLock(s.inbox, "watching")
+            try:
+                inbox_lock = FolderLock(s.inbox, "watching")
+            except FolderBusyError:
+                for folder in made:  # refused: the output folders it made go too (empty)
+                    with contextlib.suppress(OSError):
+                        folder.rmdir()
+                raise
             try:
                 return self.serve()
             finally:
@@ -998,6 +1061,7 @@ class Daemon:
                         "and failure reports go to %s", s.inbox, s.outbox / FAILED_FOLDER)
             keep_sources, failure_reports = True, s.outbox / FAILED_FOLDER
         journal = Journal(s.outbox)
+        note_inbox(s.outbox, s.inbox)
         jobs = self.jobs = JobRunner(s, journal, keep_sources, failure_reports,
                                      self.inbox.notice)
         jobs.recover()
@@ -1007,7 +1071,8 @@ class Daemon:
         # it killed the daemon at once, a partial clip left and nothing logged
         if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup`: ignored
             signal.signal(signal.SIGHUP, self.request_stop)
-        observer = start_observer(s.inbox, s.poll, self.inbox.notice, self.inbox.notice_removal)
+        observer = start_observer(s.inbox, s.poll, self.inbox.notice, self.inbox.notice_removal,
+                                  self.inbox.notice_rename)
         for path in sorted(s.inbox.iterdir()):
             self.inbox.notice(path)
         threads = max(1, (os.cpu_count() or 1) // s.jobs)
@@ -1029,7 +1094,8 @@ class Daemon:
                     self.inbox.collect_events()
                     jobs.file_late_maps(self.inbox.settled_lone_maps())
                     jobs.submit_ready(self.inbox, options, self.stopping)
-                    jobs.finish_completed(self.inbox.removed)
+                    jobs.finish_completed(self.inbox.removed, self.inbox.renamed_to,
+                                          self.inbox.forget_if_waiting)
                     jobs.file_suspects()
                 except JournalError as error:
                     log.error("%s; pausing %.0f s, then retrying (nothing is lost)", error,
@@ -1049,9 +1115,11 @@ class Daemon:
 
 
 def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None],
-                   notice_removal: Callable[[Path], None]):
+                   notice_removal: Callable[[Path], None],
+                   notice_rename: Callable[[Path, Path], None]):
     """watchdog's observer of the inbox (inotify, or polling for network shares), calling
-    notice(path, renamed) and notice_removal(path) from its own thread."""
+    notice(path, renamed), notice_removal(path) and notice_rename(old, new) from its own
+    thread."""
     from watchdog.events import FileSystemEventHandler
     from watchdog.observers import Observer
     from watchdog.observers.polling import PollingObserver
@@ -1067,6 +1135,7 @@ def start_observer(inbox: Path, poll: bool, notice: Callable[[Path, bool], None]
         def on_moved(self, event):
             if not event.is_directory:
                 notice_removal(Path(event.src_path))  # renamed away: its name is free
+                notice_rename(Path(event.src_path), Path(event.dest_path))
             notice(Path(event.dest_path), True)
 
         def on_deleted(self, event):
@@ -1092,12 +1161,43 @@ def _folder_in_use(outbox: Path) -> bool:
     return False
 
 
+def note_inbox(outbox: Path, inbox: Path) -> None:
+    """Written at the daemon's start (see INBOX_NOTE); a failure to write it costs only that."""
+    try:
+        with atomic_output(outbox / INBOX_NOTE, ".json", make_folder=False) as temp_path:
+            temp_path.write_text(json.dumps({"inbox": str(inbox)}), encoding="utf-8")
+    except OSError as error:
+        log.warning("%s: cannot be written (%s); `kbbatch status` will not count the photos "
+                    "waiting in the inbox", outbox / INBOX_NOTE, error.strerror or error)
+
+
+def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] | None:
+    """The inbox of the daemon that writes into outbox, and its photos no job has been
+    started for yet: they waited there while `kbbatch status` said "queued 0"."""
+    try:
+        note = outbox / INBOX_NOTE
+        if note.stat().st_size > MAX_REPORT_BYTES:
+            return None
+        inbox = Path(json.loads(note.read_text(encoding="utf-8"))["inbox"])
+        photos = scan_folder(inbox).photos if inbox.is_dir() else []
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # no daemon wrote here, or its note is not ours
+    return inbox, [photo for photo in photos if journal.get(photo) is None]
+
+
 def status_lines(outbox: Path) -> list[str]:
     """The journal's counts and failures, for `kbbatch status`."""
     journal = Journal(outbox, read_only=True)
     try:
         counts = journal.counts()
+        waiting = waiting_in_inbox(outbox, journal)
+        if waiting and waiting[1]:
+            counts["queued"] += len(waiting[1])
         lines = [", ".join(f"{state} {count}" for state, count in counts.items())]
+        if waiting and waiting[1]:
+            lines.append(f"WAITING {len(waiting[1])} photo(s) in the inbox {waiting[0]}, "
+                         + ("taken as they settle" if _folder_in_use(outbox)
+                            else "taken when the daemon runs again"))
         lines += [f"FAILED {job.source}: {(job.error or '').removeprefix(f'{job.source}: ')}"
                   for job in journal.jobs("failed")]  # errors most often begin with the path
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]

@@ -173,11 +173,13 @@ def test_a_second_daemon_on_the_same_inbox_is_refused(tmp_path):
     daemon = start_daemon(inbox, outbox, preset)
     try:
         wait_for(lambda: "watching" in daemon_log(tmp_path), 120, "the first daemon")
-        other = tmp_path / "other-outbox"
+        other = tmp_path / "other" / "deep" / "outbox"
         second = subprocess.run([*CLI, "watch", str(inbox), "--out", str(other), "--preset",
                                  str(preset)], capture_output=True, text=True, timeout=120)
         assert second.returncode != 0
         assert "already watching" in second.stderr and "Traceback" not in second.stderr
+        # refused for its busy inbox, it left the output folder it made, with its parents
+        assert not (tmp_path / "other").exists()
         # refused for its busy output folder, it made the inbox it named and left it there
         new_inbox = tmp_path / "new-inbox"
         third = subprocess.run([*CLI, "watch", str(new_inbox), "--out", str(outbox),
@@ -620,6 +622,67 @@ def test_workers_forked_after_the_start_up_model_check_make_their_clips(tmp_path
     finally:
         assert stop(daemon) == 0
     assert "depth from onnx (depth-anything-v2-small)" in daemon_log(tmp_path)
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_a_photo_renamed_while_its_clip_is_made_gets_one_clip(tmp_path, jobs):
+    """Renamed in the inbox while its clip was made, a photo got a second clip under its new
+    name (with --jobs 2 started at once beside the first), and the first clip was left with
+    no photo of its name in done/."""
+    from .test_watch import held_encoders
+
+    inbox, outbox, _ = folders(tmp_path)
+    preset = preset_file(tmp_path, 4.0, fps=25.0)  # an encode long enough to be held
+    daemon = start_daemon(inbox, outbox, preset, "--jobs", jobs)
+    try:
+        drop(inbox, "p.jpg", photo_bytes(tmp_path, 1))
+        encoders = held_encoders(outbox, "p")
+        os.rename(inbox / "p.jpg", inbox / "renamed.jpg")
+        time.sleep(1.0)  # the rename is seen while the clip is unfinished
+        for pid in encoders:
+            os.kill(pid, signal.SIGCONT)
+        wait_for(lambda: (inbox / "done" / "renamed.jpg").is_file(), 120, "the photo in done/")
+        time.sleep(3.0)  # a second clip would be started meanwhile
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["p.mp4"]
+    assert sorted(p.name for p in (inbox / "done").iterdir()) == ["renamed.jpg"]
+    assert "p.jpg was renamed renamed.jpg while its clip was made" in daemon_log(tmp_path)
+    journal = Journal(outbox)
+    try:
+        [job] = journal.jobs()
+        assert (job.state, Path(job.source).name, job.output) == ("done", "renamed.jpg", "p.mp4")
+    finally:
+        journal.close()
+
+
+def test_status_counts_the_photos_waiting_in_the_inbox(tmp_path):
+    """`kbbatch status` said "queued 0" while 29 photos waited in the daemon's inbox, and after
+    a stop never mentioned the photos left there."""
+    from .test_watch import held_encoders
+
+    inbox, outbox, _ = folders(tmp_path)
+    preset = preset_file(tmp_path, 4.0, fps=25.0)  # an encode long enough to be held
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+        encoders = held_encoders(outbox, "a")
+        for seed in (2, 3):
+            drop(inbox, f"w{seed}.jpg", photo_bytes(tmp_path, seed))
+        status = subprocess.run([*CLI, "status", str(outbox)], capture_output=True, text=True)
+        for pid in encoders:
+            os.kill(pid, signal.SIGCONT)
+    finally:
+        assert stop(daemon) == 0
+    assert "queued 2, running 1, done 0" in status.stdout, status.stdout
+    assert f"WAITING 2 photo(s) in the inbox {inbox}, taken as they settle" in status.stdout
+    # stopped while a.jpg's clip was made (one job): the other two were never started
+    assert sorted(p.name for p in inbox.iterdir() if p.is_file()) == ["w2.jpg", "w3.jpg"]
+    assert (inbox / "done" / "a.jpg").is_file()
+    status = subprocess.run([*CLI, "status", str(outbox)], capture_output=True, text=True)
+    assert "queued 2, running 0, done 1" in status.stdout, status.stdout
+    assert f"WAITING 2 photo(s) in the inbox {inbox}, taken when the daemon runs again" in \
+        status.stdout, status.stdout
 
 
 def assert_held_then_made(tmp_path: Path, inbox: Path, outbox: Path, daemon, mend) -> str:
