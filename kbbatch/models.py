@@ -229,17 +229,15 @@ def cache_problem(spec: ModelSpec, path: Path) -> str | None:
     (its sha256 pinned); or, with no checksum known, not loadable or not a network of its
     role (EXPECTED_TENSORS)."""
     try:
-        if spec.sha256 is not None:
-            stat = path.stat()
-            actual = _sha256(path, stat.st_size, stat.st_mtime_ns)
-            if actual != spec.sha256.lower():
-                return (f"not the file of model {spec.name} (sha256 {actual[:16]}..., expected "
-                        f"{spec.sha256[:16]}...): damaged or another file; {_remedy(spec)}")
-            return None
         stat = path.stat()
         actual = _sha256(path, stat.st_size, stat.st_mtime_ns)
     except OSError as error:
         return f"model {spec.name} cannot be read ({error.strerror or error})"
+    if spec.sha256 is not None:
+        if actual != spec.sha256.lower():
+            return (f"not the file of model {spec.name} (sha256 {actual[:16]}..., expected "
+                    f"{spec.sha256[:16]}...): damaged or another file; {_remedy(spec)}")
+        return None
     other = next((o for o in REGISTRY.values() if o.sha256 and o.sha256.lower() == actual), None)
     if other is not None:  # its tensors can pass for the role's (ISNet's are a depth net's)
         return (f"the file of model {other.name} ({other.role}), not of {spec.name}; "

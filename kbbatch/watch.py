@@ -145,8 +145,9 @@ SPACE_RETRY_S = 60.0
 """After a full disk the daemon cannot measure (a Ray node's temporary folder), photos are taken
 again this long after."""
 
-MAX_REPORT_BYTES = 1 << 20
-"""A file in the failure reports' folder larger than this is not read as one of the reports."""
+MAX_NOTE_BYTES = 1 << 20
+"""A file larger than this is not read as one of the daemon's own (a failure report, the inbox
+note): someone else's file under such a name."""
 
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
@@ -955,7 +956,7 @@ class JobRunner:
         reports = []
         for report in self.failure_reports.glob("*.error.json"):
             try:
-                if report.stat().st_size <= MAX_REPORT_BYTES and json.loads(
+                if report.stat().st_size <= MAX_NOTE_BYTES and json.loads(
                         report.read_text(encoding="utf-8")).get("photo") == str(photo):
                     reports.append(report)
             except (OSError, ValueError, AttributeError):
@@ -1176,7 +1177,7 @@ def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] 
     started for yet: they waited there while `kbbatch status` said "queued 0"."""
     try:
         note = outbox / INBOX_NOTE
-        if note.stat().st_size > MAX_REPORT_BYTES:
+        if note.stat().st_size > MAX_NOTE_BYTES:
             return None
         inbox = Path(json.loads(note.read_text(encoding="utf-8"))["inbox"])
         photos = scan_folder(inbox).photos if inbox.is_dir() else []
