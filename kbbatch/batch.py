@@ -17,6 +17,7 @@ from pathlib import Path
 
 from kbbatch.depth import DepthError
 from kbbatch.images import (
+    LONE_MAP_REASON,
     NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     PHOTO_KINDS,
@@ -25,6 +26,7 @@ from kbbatch.images import (
     ImageReadError,
     atomic_output,
     broken_link_reason,
+    is_image_file,
     read_photo,
     scan_folder,
     upright_size,
@@ -131,16 +133,48 @@ class RunReport:
         )
 
     def write(self, output_folder: Path) -> str | None:
-        """Written atomically into output_folder; why not, if it could not be."""
+        """Written atomically into output_folder (report_path); why not, if it could not be."""
+        path = report_path(output_folder)
+        if path is None:
+            return (f"{output_folder / REPORT_NAME} and {output_folder / OTHER_REPORT_NAME}: "
+                    "files of another's, not kbbatch run reports; kept, so no report was "
+                    "written")
         try:
             # not made again: a folder removed mid-run is the user's doing (see FOLDER_GONE)
-            with atomic_output(output_folder / REPORT_NAME, ".json",
-                               make_folder=False) as temp_path:
+            with atomic_output(path, ".json", make_folder=False) as temp_path:
                 temp_path.write_text(self.to_json(), encoding="utf-8")
         except OSError as error:
-            return (f"{output_folder / REPORT_NAME}: report could not be written "
-                    f"({error.strerror or error})")
+            return f"{path}: report could not be written ({error.strerror or error})"
         return None
+
+
+REPORT_NAME = "kbbatch-report.json"
+
+OTHER_REPORT_NAME = "kbbatch-run-report.json"
+"""The run report's name where a file of another's has REPORT_NAME (a file kbbatch did not
+write is never replaced: a user's notes there were overwritten by the report)."""
+
+REPORT_START = b'{\n  "folder": '
+"""How every report RunReport.to_json writes begins: known so without reading all of it."""
+
+
+def is_run_report(path: Path) -> bool:
+    try:
+        with path.open("rb") as handle:
+            return handle.read(len(REPORT_START)) == REPORT_START
+    except OSError:
+        return False
+
+
+def report_path(output_folder: Path) -> Path | None:
+    """Where the folder's run report is (or goes): REPORT_NAME unless a file of another's is
+    there, then OTHER_REPORT_NAME unless one is there too; None then."""
+    for name in (REPORT_NAME, OTHER_REPORT_NAME):
+        path = output_folder / name
+        if not os.path.lexists(path) or (path.is_file() and not path.is_symlink()
+                                         and is_run_report(path)):
+            return path
+    return None
 
 
 CARRIED_FIELDS = ("preset", "depth_backend", "plan", "risk", "frames", "device")
@@ -150,8 +184,9 @@ it: each re-run dropped the crops, depth backend and preset of every clip it ski
 
 def _last_report(output_folder: Path) -> dict:
     """The folder's run report as it is on disk ({} where there is none it can read)."""
+    path = report_path(output_folder)
     try:
-        report = json.loads((output_folder / REPORT_NAME).read_text(encoding="utf-8"))
+        report = json.loads(path.read_text(encoding="utf-8")) if path else {}
     except (OSError, ValueError):
         return {}
     return report if isinstance(report, dict) else {}
@@ -241,9 +276,6 @@ def utc_now() -> str:
     return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
 
 
-REPORT_NAME = "kbbatch-report.json"
-
-
 HIDDEN_REASON = "hidden (the name starts with a dot); not taken: rename to render"
 
 
@@ -260,6 +292,8 @@ def empty_folder_error(folder: Path, scan: FolderScan) -> EmptyFolderError:
         where += f"; {_some(scan.name_ends)}: {NAME_END_REASON}"
     if scan.hidden:
         where += f"; {_some(scan.hidden)}: {HIDDEN_REASON}"
+    if scan.lone_maps:
+        where += f"; {_some(scan.lone_maps)}: {LONE_MAP_REASON}"
     kinds = ", ".join(PHOTO_KINDS)
     return EmptyFolderError(f"{folder}: no photos here ({kinds}){where}; nothing was written")
 
@@ -338,6 +372,24 @@ def _some(paths: list[Path]) -> str:
             + (f" and {more} more" if more > 0 else ""))
 
 
+SUBFOLDER_LOOK_ENTRIES = 1000
+"""How many names of a subfolder are looked at for a photo before it is taken to hold some."""
+
+
+def _holds_photos(folder: Path) -> bool:
+    """Whether a subfolder (not searched) has photos of its own: the advice to run kbbatch on
+    it was given for the folder of earlier clips, of depth maps or of plan previews too. One
+    that cannot be read is said as if it had."""
+    try:
+        with os.scandir(folder) as entries:
+            for count, entry in enumerate(entries):
+                if count >= SUBFOLDER_LOOK_ENTRIES or is_image_file(Path(entry.path)):
+                    return True
+    except OSError:
+        return True
+    return False
+
+
 def run_folder(
     folder: Path,
     output_folder: Path,
@@ -382,12 +434,18 @@ def run_folder(
     lock = FolderLock(output_folder, "writing clips into")
     results: list[ClipResult] = []
     notes = [f"{sub}: subfolder not searched (run kbbatch on it to render its photos)"
-             for sub in scan.subfolders]
+             for sub in scan.subfolders if _holds_photos(sub)]
     notes += [f"{path}: {UNREAD_FORMAT_REASON}" for path in scan.unread_formats]
     notes += [f"{path}: {NAME_END_REASON}" for path in scan.name_ends]
     notes += [f"{path}: {OLD_PLAN_SHEET_REASON}" for path in scan.plan_sheets]
     if scan.hidden:
         notes.append(f"{folder}: {_some(scan.hidden)}: {HIDDEN_REASON}")
+    notes += [f"{path}: {LONE_MAP_REASON}" for path in scan.lone_maps
+              if not (manifest and manifest.depth_map_of(path))]
+    written = report_path(output_folder)
+    if written != output_folder / REPORT_NAME:
+        notes.append(f"{output_folder / REPORT_NAME}: not a kbbatch run report (a file of "
+                     "yours?); kept" + (f", this run's report is {written}" if written else ""))
     notes += [f"{path}: the depth map of {image} in {manifest.path}; not rendered as a photo"
               for path, image in maps.items() if image]
     for link in scan.broken_links:
@@ -502,9 +560,11 @@ def run_folder(
                                         "stopped there (the clips made before are where the "
                                         "folder went)")
             report.unwritten = report.write(output_folder)
-            if report.unwritten:  # the one written at the start: the run never finished
+            written = report_path(output_folder)
+            if report.unwritten and written is not None and written.exists():
+                # the one written at the start: the run never finished
                 with contextlib.suppress(OSError):
-                    (output_folder / REPORT_NAME).unlink()
+                    written.unlink()
             lock.release()
     return report
 

@@ -20,18 +20,20 @@ from kbbatch.batch import (
     CORES_PER_JOB,
     DISK_FULL,
     MEMORY_PER_JOB_GIB,
-    REPORT_NAME,
     EmptyFolderError,
     RunReport,
     default_jobs,
+    empty_folder_error,
     last_run_lines,
     plan_folder,
+    report_path,
     run_folder,
 )
 from kbbatch.depth import DepthOptions
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
 from kbbatch.entry import EXIT_INTERRUPTED
+from kbbatch.images import scan_folder
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.outputs import OutputFolderError
@@ -280,7 +282,7 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         _print_summary(report)
     except OSError as error:  # the clips and the report are made: said, not failed
         click.echo(f"NOTE the summary could not be printed ({stdout_lost(error)}); the run "
-                   f"report has it: {Path(report.output_folder) / REPORT_NAME}", err=True)
+                   f"report has it: {report_path(Path(report.output_folder))}", err=True)
     if report.unwritten:  # the clips are made, but whoever reads the report is not told
         click.echo(f"Error: {report.unwritten}", err=True)
     if report.stopped_by == DISK_FULL:
@@ -415,16 +417,18 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         session = ReviewSession(folder, manifest_path, preset, options, render_options)
     except ManifestError as error:
         raise click.BadParameter(str(error), param_hint="--manifest") from error
+    for link in session.links_out:
+        click.echo(one_line(f"NOTE {link}: a link to a photo outside the folder; not shown (the "
+                            "review serves only what lies inside it); the batch renders it "
+                            "with its automatic plan"), err=True)
+    if not session.photos:  # a page of nothing to review: said as the batch says it
+        click.echo(f"Error: {empty_folder_error(folder, scan_folder(folder))}", err=True)
+        sys.exit(EXIT_NOTHING_TO_DO)
     try:
         server = ReviewServer(session, host, port)
     except OSError as error:
         raise click.ClickException(f"cannot listen on {host}:{port} ({error.strerror or error});"
                                    " choose another --host or --port") from error
-
-    for link in session.links_out:
-        click.echo(one_line(f"NOTE {link}: a link to a photo outside the folder; not shown (the "
-                            "review serves only what lies inside it); the batch renders it "
-                            "with its automatic plan"), err=True)
 
     def ready(url: str) -> None:
         click.echo(f"kbbatch review: {len(session.photos)} photo(s) of {session.folder} at {url}"
@@ -432,7 +436,9 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         if open_browser:
             import webbrowser
 
-            webbrowser.open(url)
+            if not webbrowser.open(url):
+                click.echo("NOTE no web browser could be started here; open the address above "
+                           "in one", err=True)
 
     try:
         server.serve(ready)

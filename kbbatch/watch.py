@@ -156,6 +156,11 @@ RUN_FAULT_RETRY_S = 5.0
 """After a photo failed for a fault of the run's (run_fault), how often the daemon looks whether
 it is mended before it takes photos again."""
 
+EVENT_LAG_S = 1.5
+"""How long a made clip whose photo is gone from the inbox waits for the observer's word of a
+rename or deletion (a polling observer looks every 0.5 s): a rename seen after the finish gave
+the photo a second clip under its new name."""
+
 
 class PhotoLogFilter(logging.Filter):
     """Prefixes a worker's log lines (`depth from popup`) with the photo it is working on."""
@@ -452,6 +457,7 @@ class JobRunner:
         self.encoder_stops: dict[Path, int] = {}  # photos whose encoder a signal stopped
         self.space_wanted: tuple[Path, int, float | None] | None = None  # after a full disk
         self.fault: tuple[str, float] | None = None  # run_fault's reason, when to look again
+        self.gone_since: dict[Future, float] = {}  # made clips awaiting word of their photo
         self.pool: ProcessPoolExecutor | RayClipPool | None = None
         self.manifest = ManifestFollower(settings.manifest)
         # the inbox as given too: a link to it pointed elsewhere leaves the folder watched
@@ -617,6 +623,8 @@ class JobRunner:
             except Exception as error:  # the call itself failed (not the photo's pipeline)
                 result = ClipResult(str(job.path), None, "failed", 0.0,
                                     error=f"{job.path}: worker failed: {error}")
+            if self.awaiting_word(future, job, result, removed, renamed):
+                continue
             # Deleted and another photo put under its name while the clip was made: the clip is
             # the deleted photo's, and the new one is a photo of its own, not an edit of it.
             replaced = (result.status == "done" and job.path in removed
@@ -724,6 +732,20 @@ class JobRunner:
                          "later under its name gets a clip of its own", path.name,
                          self.journal.get(path.with_name(f"{path.name}{GONE_MARK}")).output)
         removed.intersection_update(in_flight)
+
+    def awaiting_word(self, future: Future, job: InFlight, result: ClipResult,
+                      removed: set[Path], renamed: dict[Path, Path]) -> bool:
+        """A clip made of a photo gone from its path, with no rename or deletion seen yet,
+        waits up to EVENT_LAG_S for the observer to say which it was."""
+        if (result.status != "done" or job.path in removed or job.path in renamed
+                or os.path.lexists(job.path)):
+            self.gone_since.pop(future, None)
+            return False
+        since = self.gone_since.setdefault(future, time.monotonic())
+        if time.monotonic() - since < EVENT_LAG_S:
+            return True
+        del self.gone_since[future]
+        return False
 
     def renamed_photo(self, job: InFlight, result: ClipResult, renamed: dict[Path, Path]
                       ) -> Path | None:
@@ -1022,6 +1044,7 @@ class Daemon:
         # The output folder's lock first: a daemon refused for a busy one made the inbox it
         # named and left it behind.
         outbox_lock = FolderLock(s.outbox, "writing clips into")
+        refused = True  # until it serves: refused, the output folders it made go (empty)
         try:
             if not s.inbox.is_dir():
                 s.inbox.mkdir(exist_ok=True)
@@ -1040,19 +1063,17 @@ class Daemon:
                     raise OutputFolderError(f"{where}: not a folder; the daemon moves finished "
                                             f"photos into {name}/ in the inbox: move this file "
                                             "away")
-            try:
-                inbox_lock = FolderLock(s.inbox, "watching")
-            except FolderBusyError:
-                for folder in made:  # refused: the output folders it made go too (empty)
-                    with contextlib.suppress(OSError):
-                        folder.rmdir()
-                raise
+            inbox_lock = FolderLock(s.inbox, "watching")
+            refused = False
             try:
                 return self.serve()
             finally:
                 inbox_lock.release()
         finally:
             outbox_lock.release()
+            for folder in made if refused else ():
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
 
     def serve(self) -> int:
         s = self.settings
@@ -1062,7 +1083,7 @@ class Daemon:
                         "and failure reports go to %s", s.inbox, s.outbox / FAILED_FOLDER)
             keep_sources, failure_reports = True, s.outbox / FAILED_FOLDER
         journal = Journal(s.outbox)
-        note_inbox(s.outbox, s.inbox)
+        note_inbox(s.outbox, s.inbox, s.manifest.path if s.manifest else None)
         jobs = self.jobs = JobRunner(s, journal, keep_sources, failure_reports,
                                      self.inbox.notice)
         jobs.recover()
@@ -1162,11 +1183,13 @@ def _folder_in_use(outbox: Path) -> bool:
     return False
 
 
-def note_inbox(outbox: Path, inbox: Path) -> None:
-    """Written at the daemon's start (see INBOX_NOTE); a failure to write it costs only that."""
+def note_inbox(outbox: Path, inbox: Path, manifest: Path | None) -> None:
+    """Written at the daemon's start (see INBOX_NOTE), with the manifest it follows (whose
+    excluded photos and depth maps wait for nothing); a failure to write it costs only that."""
+    note = {"inbox": str(inbox)} | ({"manifest": str(manifest.absolute())} if manifest else {})
     try:
         with atomic_output(outbox / INBOX_NOTE, ".json", make_folder=False) as temp_path:
-            temp_path.write_text(json.dumps({"inbox": str(inbox)}), encoding="utf-8")
+            temp_path.write_text(json.dumps(note), encoding="utf-8")
     except OSError as error:
         log.warning("%s: cannot be written (%s); `kbbatch status` will not count the photos "
                     "waiting in the inbox", outbox / INBOX_NOTE, error.strerror or error)
@@ -1179,11 +1202,26 @@ def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] 
         note = outbox / INBOX_NOTE
         if note.stat().st_size > MAX_NOTE_BYTES:
             return None
-        inbox = Path(json.loads(note.read_text(encoding="utf-8"))["inbox"])
+        noted = json.loads(note.read_text(encoding="utf-8"))
+        inbox = Path(noted["inbox"])
         photos = scan_folder(inbox).photos if inbox.is_dir() else []
-    except (OSError, ValueError, KeyError, TypeError):
+        manifest_path = noted.get("manifest")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None  # no daemon wrote here, or its note is not ours
-    return inbox, [photo for photo in photos if journal.get(photo) is None]
+    manifest = None
+    if isinstance(manifest_path, str):
+        with contextlib.suppress(ManifestError, OSError):
+            manifest = load_manifest(Path(manifest_path))
+
+    def passed_over(photo: Path) -> bool:
+        """Excluded by the daemon's manifest, or named there as a depth map: never taken."""
+        if manifest is None:
+            return False
+        entry = manifest.entry(photo.name, photo.parent)
+        return (entry is not None and entry.excluded) or bool(manifest.depth_map_of(photo))
+
+    return inbox, [photo for photo in photos
+                   if journal.get(photo) is None and not passed_over(photo)]
 
 
 def status_lines(outbox: Path) -> list[str]:

@@ -302,3 +302,26 @@ def test_a_depth_and_a_disparity_map_of_one_photo_are_said_once(tmp_path, caplog
     assert said == [f"{photo}: both.depth.png and both.disparity.npy are maps of this "
                     "photo; both.depth.png is used (depth before disparity, PNG before .npy "
                     "before .exr): remove the others"], said
+
+
+def test_a_map_with_no_photo_of_its_name_is_said_not_passed_over(tmp_path):
+    """A photo saved under a map's name (`holiday.depth.png`), or a map whose photo was
+    renamed, was left out without a word: a folder of only such files said "no photos here"
+    naming none of them, and beside other photos the report's notes were empty."""
+    import subprocess
+
+    from kbbatch.images import LONE_MAP_REASON, scan_folder
+
+    cv2.imwrite(str(tmp_path / "holiday.depth.png"), textured_image(20, 30))
+    cv2.imwrite(str(tmp_path / "stereo.disparity.png"), textured_image(20, 30))
+    np.save(tmp_path / "cat.depth.npy", np.ones((20, 30), np.float32))
+    (tmp_path / "cat.HEIC").write_bytes(b"a photo in a format not read: its map is no orphan")
+    scan = scan_folder(tmp_path)
+    assert [p.name for p in scan.lone_maps] == ["holiday.depth.png", "stereo.disparity.png"]
+    run = subprocess.run([sys.executable, "-m", "kbbatch", str(tmp_path), "-o",
+                          str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 3, run.stderr
+    assert f"holiday.depth.png, stereo.disparity.png: {LONE_MAP_REASON}" in run.stderr, \
+        run.stderr
+    cv2.imwrite(str(tmp_path / "holiday.jpg"), textured_image(20, 30))  # its photo comes
+    assert [p.name for p in scan_folder(tmp_path).lone_maps] == ["stereo.disparity.png"]

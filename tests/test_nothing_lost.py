@@ -24,6 +24,7 @@ from kbbatch import batch
 from kbbatch.batch import default_jobs, plan_folder, run_folder
 from kbbatch.depth import DepthOptions
 from kbbatch.images import (
+    LONE_MAP_REASON,
     NAME_END_REASON,
     OLD_PLAN_SHEET_REASON,
     UNREAD_FORMAT_REASON,
@@ -166,12 +167,33 @@ def test_a_report_that_cannot_be_written_fails_the_run(tmp_path):
     one."""
     folder, out = tmp_path / "in", tmp_path / "out"
     photo(folder / "a.jpg", seed=1)
-    (out / "kbbatch-report.json").mkdir(parents=True)
+    for name in ("kbbatch-report.json", "kbbatch-run-report.json"):  # both names taken
+        (out / name).mkdir(parents=True)
     run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stderr
-    assert "kbbatch-report.json: report could not be written" in run.stderr, run.stderr
+    assert "kbbatch-run-report.json: files of another's, not kbbatch run reports; kept, so no " \
+        "report was written" in run.stderr, run.stderr
     assert visible_clips(out) == ["a.mp4"]
+
+
+def test_a_file_of_the_users_under_the_reports_name_is_kept(tmp_path):
+    """A file kbbatch did not write is never replaced: the user's own kbbatch-report.json in
+    the output folder was overwritten by the run report without a word."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    out.mkdir()
+    (out / "kbbatch-report.json").write_text('{"my": "own notes"}')
+    for _ in range(2):  # the second run finds its own report under the other name
+        run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        assert (out / "kbbatch-report.json").read_text() == '{"my": "own notes"}'
+        assert "kbbatch-report.json: not a kbbatch run report (a file of yours?); kept, this " \
+            f"run's report is {out / 'kbbatch-run-report.json'}" in run.stdout + run.stderr
+        report = json.loads((out / "kbbatch-run-report.json").read_text())
+        [clip] = report["clips"]
+    assert clip["status"] == "skipped" and clip["plan"], "the first run's report was read"
 
 
 def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finished(
@@ -1180,6 +1202,9 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     photo(folder / "crops-contact.jpg", seed=3)  # an old `kbbatch plan`'s sheet...
     (folder / "crops-previews").mkdir()  # ...beside its previews
     photo(folder / "team-contact.jpg", seed=4)  # a photo so named, with no previews beside it
+    (folder / "clips").mkdir()  # earlier clips: no photos, nothing to advise
+    (folder / "clips" / "a.mp4").write_bytes(b"a clip")
+    photo(folder / "holiday.depth.png", seed=7)  # a photo saved under a map's name
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)
     by_name = {Path(r.source).name: r for r in report.results}
     assert by_name["a.jpg"].status == "done"
@@ -1193,7 +1218,9 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     for name in ("loop1.jpg", "loop2.jpg"):
         assert by_name[name].status == "failed"
         assert "symbolic link in a loop" in by_name[name].error
-    assert any("more" in note and "subfolder" in note for note in report.notes), report.notes
+    assert [note for note in report.notes if "subfolder" in note] == [
+        f"{folder / 'more'}: subfolder not searched (run kbbatch on it to render its photos)"]
+    assert f"{folder / 'holiday.depth.png'}: {LONE_MAP_REASON}" in report.notes
     assert [note for note in report.notes if "format kbbatch does not read" in note] == [
         f"{folder / name}: {UNREAD_FORMAT_REASON}" for name in ("IMG_0002.heic", "IMG_0003.PEF")]
 

@@ -361,6 +361,17 @@ def test_a_photo_that_cannot_be_read_is_reported_not_served(tmp_path, preset):
     assert not manifest.exists()
 
 
+def test_a_folder_with_no_photos_is_said_not_served_as_an_empty_page(tmp_path):
+    """`review` on a folder with no photos served a page of 0 photos (the batch and `plan`
+    say "no photos here", exit 3)."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    run = subprocess.run([sys.executable, "-m", "kbbatch", "review", str(empty), "--port", "0",
+                          "--depth", "ramp"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 3 and f"{empty}: no photos here" in run.stderr, run.stderr
+    assert "kbbatch review:" not in run.stdout and list(empty.iterdir()) == []
+
+
 def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
     command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
                str(tmp_path / "cli.json"), "--port", "0", "--depth", "ramp"]

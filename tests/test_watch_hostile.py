@@ -353,7 +353,7 @@ def finish_one(tmp_path: Path, name: str, result_status: str, error: str | None 
     future.set_result(ClipResult(str(photo), str(outbox / clip) if result_status == "done"
                                  else None, result_status, 0.1, error=error))
     runner.in_flight[future] = InFlight(photo, "1:1", clip, clip, True)
-    runner.finish_completed()
+    runner.finish_completed({photo})  # the observer saw the deletion
     assert runner.in_flight == {}
     return inbox, journal, requeued
 
@@ -379,6 +379,60 @@ def test_a_clip_of_a_deleted_photo_is_not_replaced_by_a_new_photo_of_its_name(tm
     [job] = journal.jobs("done")
     assert job.output == "del.mp4" and "removed from the inbox" in job.source
     journal.close()
+
+
+def test_a_rename_seen_after_the_clip_is_finished_still_gives_the_clip_to_the_photo(
+        tmp_path, monkeypatch):
+    """A photo renamed just before its clip was finished, the observer's word of it not yet
+    read, was taken for deleted: its clip was left to no photo, and the photo under its new
+    name got a second clip. A made clip whose photo is gone now waits for that word."""
+    from concurrent.futures import Future
+
+    from kbbatch import watch
+    from kbbatch.fingerprint import file_sha256
+    from kbbatch.pipeline import ClipOptions, ClipResult
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import InFlight, JobRunner, WatchSettings
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    outbox.mkdir()
+    photo, renamed = inbox / "p.jpg", inbox / "renamed.jpg"
+    renamed.write_bytes(photo_bytes(tmp_path, 1))  # p.jpg as it is after the rename
+    content = file_sha256(renamed)
+    journal = Journal(outbox)
+    runner = JobRunner(WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions()),
+                       journal, False, inbox / "failed", lambda path, again: None)
+    journal.start(photo, "1:1", "settings", "p.mp4", content)
+    (outbox / "p.mp4").write_bytes(b"the photo's clip")
+    future: Future = Future()
+    future.set_result(ClipResult(str(photo), str(outbox / "p.mp4"), "done", 0.1,
+                                 content=content))
+    runner.in_flight[future] = InFlight(photo, "1:1", "p.mp4", "p.mp4", False, False, content)
+    runner.finish_completed(set(), {})  # the rename not yet seen
+    assert future in runner.in_flight, "finished before the observer could say what happened"
+    runner.finish_completed(set(), {photo: renamed})  # the observer's word
+    assert runner.in_flight == {}
+    [job] = journal.jobs()
+    assert (job.state, Path(job.source).name, job.output) == ("done", "renamed.jpg", "p.mp4")
+    assert (inbox / "done" / "renamed.jpg").is_file()
+    journal.close()
+
+    # no word at all: after EVENT_LAG_S the clip is finished as a deleted photo's
+    monkeypatch.setattr(watch, "EVENT_LAG_S", 0.0)
+    outbox2 = tmp_path / "second"
+    outbox2.mkdir()
+    journal2 = Journal(outbox2)
+    runner = JobRunner(WatchSettings(inbox, outbox2, load_preset("preview"), ClipOptions()),
+                       journal2, False, inbox / "failed", lambda path, again: None)
+    journal2.start(photo, "1:1", "settings", "p.mp4", content)
+    (outbox2 / "p.mp4").write_bytes(b"the photo's clip")
+    runner.in_flight[future] = InFlight(photo, "1:1", "p.mp4", "p.mp4", False, False, content)
+    runner.finish_completed(set(), {})
+    assert runner.in_flight == {} and runner.gone_since == {}
+    [job] = journal2.jobs("done")
+    assert "removed from the inbox" in job.source
+    journal2.close()
 
 
 def test_deletions_are_kept_only_while_their_photos_are_in_flight(tmp_path):
@@ -574,11 +628,13 @@ def test_the_daemon_follows_its_manifest_and_leaves_the_maps_it_names(tmp_path):
 def test_watch_refuses_a_file_named_done_an_empty_out_and_a_thousand_workers(tmp_path):
     inbox, outbox, preset = folders(tmp_path)
     (inbox / "done").write_text("my notes")
-    refused = subprocess.run([*CLI, "watch", str(inbox), "--out", str(outbox), "--preset",
+    made = tmp_path / "made" / "clips"  # refused, it left the output folder it made
+    refused = subprocess.run([*CLI, "watch", str(inbox), "--out", str(made), "--preset",
                               str(preset)], capture_output=True, text=True, timeout=120)
     assert refused.returncode == 1 and "done: not a folder; the daemon moves finished photos" \
         in refused.stderr and "Traceback" not in refused.stderr
     assert (inbox / "done").read_text() == "my notes"
+    assert not (tmp_path / "made").exists()
     empty = subprocess.run([*CLI, "watch", str(inbox), "--out", "", "--preset", str(preset)],
                            capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert empty.returncode == 2 and "an empty path" in empty.stderr
@@ -683,6 +739,25 @@ def test_status_counts_the_photos_waiting_in_the_inbox(tmp_path):
     assert "queued 2, running 0, done 1" in status.stdout, status.stdout
     assert f"WAITING 2 photo(s) in the inbox {inbox}, taken when the daemon runs again" in \
         status.stdout, status.stdout
+
+
+def test_status_does_not_count_the_photos_the_daemons_manifest_excludes(tmp_path):
+    """A photo the daemon's manifest excludes is left in the inbox for good, yet `kbbatch
+    status` counted it as queued and waiting to be taken."""
+    inbox, outbox, preset = folders(tmp_path)
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"skip.jpg": {"exclude": True}}}))
+    drop(inbox, "skip.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset, "--manifest", str(manifest))
+    try:
+        wait_for(lambda: "skip.jpg: excluded by the manifest" in daemon_log(tmp_path), 120,
+                 "the photo passed over")
+    finally:
+        assert stop(daemon) == 0
+    drop(inbox, "new.jpg", photo_bytes(tmp_path, 3))
+    status = subprocess.run([*CLI, "status", str(outbox)], capture_output=True, text=True)
+    assert "queued 1, running 0, done 0" in status.stdout, status.stdout
+    assert f"WAITING 1 photo(s) in the inbox {inbox}" in status.stdout, status.stdout
 
 
 def assert_held_then_made(tmp_path: Path, inbox: Path, outbox: Path, daemon, mend) -> str:
