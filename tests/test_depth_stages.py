@@ -372,3 +372,42 @@ def test_a_persons_card_keeps_no_background_beside_the_neck(monkeypatch, photo_n
         upper[:int(top + 0.5 * (bottom - top))] = True
         assert (person.mask & upper & ~near_salient).sum() <= 100
         assert (person.face & salient).sum() > 0.9 * person.face.sum(), "the face stays whole"
+
+
+def test_a_card_cut_through_flat_colour_is_left_on_the_ground():
+    """ISNet, unsure of a shape of one colour (0.4 to 0.6 over all of it), cut its card
+    mid-colour: the move tore notches into the shape and left a strip of it behind. A card
+    whose outline mostly runs through flat colour now stays on the ground; one that follows
+    the photo's edges, or a blurred one's soft edge, still pops up."""
+    import cv2
+
+    from kbbatch.depth import SceneContext
+    from kbbatch.depth.popup import (
+        FLAT_OUTLINE_MAX,
+        PopupDepth,
+        edge_strengths,
+        flat_outline_share,
+    )
+
+    image = np.zeros((240, 400, 3), np.uint8)
+    image[:] = (0, 118, 110)  # teal
+    cv2.ellipse(image, (200, 150), (80, 60), 0, 0, 360, (174, 77, 77), -1)  # a red shape
+    shape = np.all(image == (174, 77, 77), axis=-1)
+    saliency = np.where(shape, 0.45, 0.02).astype(np.float32)
+    saliency[125:175][shape[125:175]] = 0.6  # ISNet sure of a band across it only
+    context = SceneContext(image)
+    context.__dict__.update(saliency=saliency, instances=[])
+    result = PopupDepth().disparity(image, None, context)
+    assert "1 salient region(s) left on the ground" in result.source, result.source
+    steps = np.abs(np.diff(result.disparity, axis=1))[shape[:, 1:] & shape[:, :-1]]
+    assert steps.max() < 1e-3, "a depth step through the shape's flat colour"
+
+    strength = edge_strengths(image)
+    assert flat_outline_share(shape, strength) == 0.0  # the whole shape: cut along its edge
+    blurred = cv2.GaussianBlur(image, (0, 0), 3)  # out of focus, its edge is soft, yet there
+    assert flat_outline_share(shape, edge_strengths(blurred)) <= FLAT_OUTLINE_MAX
+    saliency[shape] = 0.9  # sure of all of it: a card
+    context.__dict__.update(saliency=saliency, instances=[])
+    result = PopupDepth().disparity(image, None, context)
+    assert "1 card(s)" in result.source and "left on the ground" not in result.source
+    assert result.disparity[150, 200] > result.disparity[150, 100]
