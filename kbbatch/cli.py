@@ -293,6 +293,9 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)
         sys.exit(EXIT_INTERRUPTED)
+    if report.not_started:  # --fail-fast: the summary's counts alone read as a whole run
+        click.echo(f"ended at its first failure (--fail-fast): {len(report.not_started)} "
+                   "photo(s) not started; run again to finish", err=True)
     sys.exit(1 if report.failed or report.interrupted or report.unwritten else 0)
 
 

@@ -80,6 +80,12 @@ def _check(data: dict[str, Any], source: str, complete: bool) -> None:
         unknown = sorted(set(data) - set(rules["properties"]))
         raise PresetError(f"{source}: unknown setting(s) {', '.join(unknown)}; known: "
                           f"{', '.join(rules['properties'])}")
+    missing = [error for error in errors if error.validator == "required"]
+    if missing and len(missing) == len(errors):  # a few settings alone: no base named
+        names = ", ".join(repr(error.message.split("'")[1]) for error in missing)
+        raise PresetError(f"{source}: missing setting(s) {names}; give them, or start the "
+                          f"file with base = \"slideshow\" (or another preset) to take the "
+                          "rest from it")
     if errors:  # every one at once: a file with two bad sizes was fixed in two rounds
         said = []
         for error in errors:

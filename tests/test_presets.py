@@ -52,8 +52,12 @@ def test_without_a_base_every_setting_but_the_description_is_required(tmp_path):
     lines = [f"{k} = {v!r}".replace("'", '"') for k, v in vars(load_preset("preview")).items()
              if k not in ("name", "description")]
     assert load_preset(write(tmp_path / "full.toml", "\n".join(lines))).description == ""
-    with pytest.raises(PresetError, match=r"part.toml: 'codec' is a required property"):
+    with pytest.raises(PresetError, match=r"part.toml: missing setting\(s\) 'codec'; give "
+                       r"them, or start the file with base = \"slideshow\""):
         load_preset(write(tmp_path / "part.toml", "\n".join(lines[:-4] + lines[-3:])))
+    # an empty file: one line, not twelve "required property" errors
+    with pytest.raises(PresetError, match=r"empty.toml: missing setting\(s\) 'width_px', "):
+        load_preset(write(tmp_path / "empty.toml", ""))
 
 
 @pytest.mark.parametrize("line, message", [

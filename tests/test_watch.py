@@ -409,6 +409,8 @@ def test_status_drops_a_stopped_runs_advice_once_the_daemon_made_its_photos(tmp_
                             "--fail-fast", "--quiet"], capture_output=True, text=True,
                            timeout=300)
     assert batch.returncode == 1, batch.stderr
+    # the summary's counts alone ("0 clip(s) made ..., 1 failed") read as a whole run
+    assert "ended at its first failure (--fail-fast): 1 photo(s) not started" in batch.stderr
 
     def status() -> str:
         return subprocess.run([sys.executable, "-m", "kbbatch", "status", str(outbox)],
