@@ -32,7 +32,7 @@ from kbbatch.images import (
     upright_size,
 )
 from kbbatch.interrupts import interrupted
-from kbbatch.manifest import Manifest, ManifestEntry, ManifestError
+from kbbatch.manifest import Manifest, ManifestEntry, ManifestError, loose_name
 from kbbatch.models import providers_used
 from kbbatch.outputs import (
     OutputFolderError,
@@ -133,18 +133,29 @@ class RunReport:
         )
 
     def write(self, output_folder: Path) -> str | None:
-        """Written atomically into output_folder (report_path); why not, if it could not be."""
+        """Written atomically into output_folder (report_path); why not, if it could not be.
+        A file of another's found under the report's name (at the start or later) is said in
+        the notes the report carries."""
         path = report_path(output_folder)
         if path is None:
             return (f"{output_folder / REPORT_NAME} and {output_folder / OTHER_REPORT_NAME}: "
-                    "files of another's, not kbbatch run reports; kept, so no report was "
-                    "written")
+                    "files of another's, not this folder's run reports; kept, so no report "
+                    "was written")
+        note = foreign_report_note(output_folder, path)
+        if path.name != REPORT_NAME and note not in self.notes:
+            self.notes.append(note)
         try:
             # not made again: a folder removed mid-run is the user's doing (see FOLDER_GONE)
             with atomic_output(path, ".json", make_folder=False) as temp_path:
                 temp_path.write_text(self.to_json(), encoding="utf-8")
+            _written_here[str(path)] = _stamp(path)
         except OSError as error:
             return f"{path}: report could not be written ({error.strerror or error})"
+        if path.name == REPORT_NAME and self.finished_at is not None:
+            other = output_folder / OTHER_REPORT_NAME  # this run's report is here now
+            if is_run_report(other, output_folder):
+                with contextlib.suppress(OSError):
+                    other.unlink()
         return None
 
 
@@ -154,25 +165,53 @@ OTHER_REPORT_NAME = "kbbatch-run-report.json"
 """The run report's name where a file of another's has REPORT_NAME (a file kbbatch did not
 write is never replaced: a user's notes there were overwritten by the report)."""
 
-REPORT_START = b'{\n  "folder": '
-"""How every report RunReport.to_json writes begins: known so without reading all of it."""
+REPORT_READ_MAX_BYTES = 1 << 30
+"""A file under a report's name larger than this is taken for another's without reading it."""
+
+_written_here: dict[str, tuple[int, int, int] | None] = {}
+"""The reports this process wrote, by path: their stamp then (known its own without reading)."""
 
 
-def is_run_report(path: Path) -> bool:
+def _stamp(path: Path) -> tuple[int, int, int] | None:
     try:
-        with path.open("rb") as handle:
-            return handle.read(len(REPORT_START)) == REPORT_START
+        stat = path.lstat()
     except OSError:
+        return None
+    return stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+def foreign_report_note(output_folder: Path, written: Path | None) -> str:
+    return (f"{output_folder / REPORT_NAME}: not this folder's run report (a file of yours, or "
+            "a report copied from another folder); kept"
+            + (f", this run's report is {written}" if written else ""))
+
+
+def is_run_report(path: Path, output_folder: Path) -> bool:
+    """Whether path is a run report of this output folder: a file of the user's that begins
+    like one, or a report copied from another folder, is not (both were overwritten)."""
+    stamp = _stamp(path)
+    if stamp is None or os.path.islink(path) or not path.is_file():
+        return False
+    if _written_here.get(str(path)) == stamp:
+        return True
+    try:
+        if stamp[1] > REPORT_READ_MAX_BYTES:
+            return False
+        report = json.loads(path.read_text(encoding="utf-8"))
+        written_for = Path(report["output_folder"])
+        return ("clips" in report and "started_at" in report
+                and (written_for == output_folder
+                     or written_for.resolve() == output_folder.resolve()))
+    except (OSError, ValueError, KeyError, TypeError, RuntimeError):
         return False
 
 
 def report_path(output_folder: Path) -> Path | None:
-    """Where the folder's run report is (or goes): REPORT_NAME unless a file of another's is
-    there, then OTHER_REPORT_NAME unless one is there too; None then."""
+    """Where the folder's run report goes: REPORT_NAME unless a file of another's is there,
+    then OTHER_REPORT_NAME unless one is there too; None then."""
     for name in (REPORT_NAME, OTHER_REPORT_NAME):
         path = output_folder / name
-        if not os.path.lexists(path) or (path.is_file() and not path.is_symlink()
-                                         and is_run_report(path)):
+        if not os.path.lexists(path) or is_run_report(path, output_folder):
             return path
     return None
 
@@ -183,8 +222,12 @@ it: each re-run dropped the crops, depth backend and preset of every clip it ski
 
 
 def _last_report(output_folder: Path) -> dict:
-    """The folder's run report as it is on disk ({} where there is none it can read)."""
-    path = report_path(output_folder)
+    """The folder's last run report as it is on disk, under either name (the newer; {} where
+    there is none it can read): a user's file removed, a report under the other name was
+    never read again."""
+    own = [path for path in (output_folder / REPORT_NAME, output_folder / OTHER_REPORT_NAME)
+           if is_run_report(path, output_folder)]
+    path = max(own, key=lambda path: path.stat().st_mtime_ns, default=None)
     try:
         report = json.loads(path.read_text(encoding="utf-8")) if path else {}
     except (OSError, ValueError):
@@ -217,8 +260,8 @@ def _as_made_before(result: ClipResult, made_before: dict[tuple[str, str], dict]
 def _nearly_named(key: str, photos: list[Path]) -> str:
     """The photo a manifest key names but for case, spaces around it or a folder before it:
     the entry's crops were silently not used, and the photo was planned instead."""
-    wanted = Path(key.strip()).name.casefold()
-    near = sorted(photo.name for photo in photos if photo.name.casefold() == wanted)
+    wanted = loose_name(key)
+    near = sorted(photo.name for photo in photos if loose_name(photo.name) == wanted)
     if not near:
         return ""
     return f"; {near[0]!r} is there: a key must be its photo's exact file name"
@@ -372,22 +415,25 @@ def _some(paths: list[Path]) -> str:
             + (f" and {more} more" if more > 0 else ""))
 
 
-SUBFOLDER_LOOK_ENTRIES = 1000
-"""How many names of a subfolder are looked at for a photo before it is taken to hold some."""
+PREVIEWS_SUFFIX = "-previews"
+"""`kbbatch plan`'s previews folder: `<manifest>-previews/`, beside the manifest."""
 
 
 def _holds_photos(folder: Path) -> bool:
-    """Whether a subfolder (not searched) has photos of its own: the advice to run kbbatch on
-    it was given for the folder of earlier clips, of depth maps or of plan previews too. One
-    that cannot be read is said as if it had."""
+    """Whether a subfolder (not searched) has photos of its own to advise running kbbatch on:
+    the advice was given for the folder of earlier clips, of depth maps, of `plan`'s previews
+    and for a link back to the folder itself. One that cannot be read is said as if it had."""
+    if folder.name.endswith(PREVIEWS_SUFFIX) and (
+            (folder / CONTACT_SHEET_NAME).exists()
+            or folder.with_name(folder.name.removesuffix(PREVIEWS_SUFFIX) + ".json").exists()):
+        return False
     try:
+        if folder.resolve() in (folder.parent.resolve(), *folder.parent.resolve().parents):
+            return False
         with os.scandir(folder) as entries:
-            for count, entry in enumerate(entries):
-                if count >= SUBFOLDER_LOOK_ENTRIES or is_image_file(Path(entry.path)):
-                    return True
+            return any(is_image_file(Path(entry.path)) for entry in entries)
     except OSError:
         return True
-    return False
 
 
 def run_folder(
@@ -442,10 +488,6 @@ def run_folder(
         notes.append(f"{folder}: {_some(scan.hidden)}: {HIDDEN_REASON}")
     notes += [f"{path}: {LONE_MAP_REASON}" for path in scan.lone_maps
               if not (manifest and manifest.depth_map_of(path))]
-    written = report_path(output_folder)
-    if written != output_folder / REPORT_NAME:
-        notes.append(f"{output_folder / REPORT_NAME}: not a kbbatch run report (a file of "
-                     "yours?); kept" + (f", this run's report is {written}" if written else ""))
     notes += [f"{path}: the depth map of {image} in {manifest.path}; not rendered as a photo"
               for path, image in maps.items() if image]
     for link in scan.broken_links:
@@ -807,7 +849,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         raise empty_folder_error(folder, scan)
     existing = existing_manifest(manifest_path)
     check_writable(manifest_path.parent)  # before the planning, not after it
-    preview_dir = manifest_path.with_name(manifest_path.stem + "-previews")
+    preview_dir = manifest_path.with_name(manifest_path.stem + PREVIEWS_SUFFIX)
     if preview_dir.resolve() == folder.resolve() or (  # a render took the sheet for a photo
             preview_dir.is_dir() and os.path.samefile(preview_dir, folder)):
         raise OutputFolderError(

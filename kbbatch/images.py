@@ -164,7 +164,7 @@ class FolderScan:
     name_ends: list[Path] = field(default_factory=list)  # `IMG_1.jpg `: NAME_END_REASON
     plan_sheets: list[Path] = field(default_factory=list)  # an old `kbbatch plan`'s sheet
     hidden: list[Path] = field(default_factory=list)  # `.IMG_1.jpg`: photos by name, not taken
-    lone_maps: list[Path] = field(default_factory=list)  # `x.depth.png` with no photo `x.*`
+    lone_maps: list[Path] = field(default_factory=list)  # `x.depth.png`, no photo `x.*`
 
 
 def broken_link_reason(link: Path) -> str:
@@ -227,15 +227,17 @@ def scan_folder(folder: Path, ignore: tuple[str, ...] = ()) -> FolderScan:
              for path in found[kind]} | {path.name.rstrip(" .").rsplit(".", 1)[0]
                                         for path in found["name_end"]}
     lone_maps = [path for path in found.get(None, ())
-                 if map_stem(path.name) not in (None, *stems) and path.is_file()]
+                 if (map_stem(path.name) not in (None, *stems)
+                     or path.name.lower().endswith(DEPTH_PREVIEW_SUFFIX)) and path.is_file()]
     return FolderScan(found["photo"], found["broken_link"], found["subfolder"],
                       found["not_file"], found["unread_format"], found["name_end"],
                       found["plan_sheet"], hidden, lone_maps)
 
 
-LONE_MAP_REASON = ("named as a depth map (`<photo>.depth.png`, `.disparity.png`, .npy, .exr), "
-                   "but no photo of its name is beside it; not used (a photo named so is taken "
-                   "for a map: rename it to render it)")
+LONE_MAP_REASON = ("named as a depth map (`<photo>.depth.png`, `.disparity.png`, .npy, .exr) "
+                   "or as kbbatch's depth preview (`.depth-preview.png`), with no photo of its "
+                   "name beside it; not used (a photo named so is taken for one: rename it to "
+                   "render it)")
 
 
 def is_hidden_photo(path: Path) -> bool:

@@ -135,6 +135,11 @@ def _describe(crop: Crop) -> str:
             f"{px(crop.bottom_px)}]")
 
 
+def loose_name(key: str) -> str:
+    """A manifest key or file name as a near miss is matched: its file name, case-folded."""
+    return Path(key.strip()).name.casefold()
+
+
 def _normal(name: str) -> str:
     """A file name in Unicode's composed form: `café.jpg` typed (composed) in a manifest names
     the photo a Mac wrote decomposed; the two look the same and are different strings."""
@@ -167,6 +172,13 @@ class Manifest:
         if found is not None and folder is not None and os.path.lexists(folder / found.image):
             return None
         return found
+
+    def near_key(self, image_name: str) -> str | None:
+        """A key that names this photo but for case, spaces around it or a folder before it:
+        its entry does not apply, silently unless said."""
+        wanted = loose_name(image_name)
+        return next((key for key in self.entries
+                     if key != image_name and loose_name(key) == wanted), None)
 
     def depth_map_of(self, path: Path) -> str | None:
         """The image whose entry names this file as its depth map, if any: such a map in the

@@ -553,6 +553,12 @@ class JobRunner:
                              else "excluded by the manifest")
                 continue
             inbox.held.discard(path)
+            if manifest and entry is None:
+                near = manifest.near_key(path.name)
+                if near is not None:  # the batch says so; the daemon rendered it silently
+                    log.warning("%s: the manifest's entry %r is not its exact file name, so "
+                                "it does not apply (an exclude or crops there are not used)",
+                                path.name, near)
             try:
                 fingerprint = source_fingerprint(path)
                 content = file_sha256(path)

@@ -316,12 +316,16 @@ def test_a_map_with_no_photo_of_its_name_is_said_not_passed_over(tmp_path):
     cv2.imwrite(str(tmp_path / "stereo.disparity.png"), textured_image(20, 30))
     np.save(tmp_path / "cat.depth.npy", np.ones((20, 30), np.float32))
     (tmp_path / "cat.HEIC").write_bytes(b"a photo in a format not read: its map is no orphan")
+    cv2.imwrite(str(tmp_path / "sunset.depth-preview.png"), textured_image(20, 30))
     scan = scan_folder(tmp_path)
-    assert [p.name for p in scan.lone_maps] == ["holiday.depth.png", "stereo.disparity.png"]
+    assert [p.name for p in scan.lone_maps] == ["holiday.depth.png", "stereo.disparity.png",
+                                                 "sunset.depth-preview.png"]
     run = subprocess.run([sys.executable, "-m", "kbbatch", str(tmp_path), "-o",
                           str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
     assert run.returncode == 3, run.stderr
-    assert f"holiday.depth.png, stereo.disparity.png: {LONE_MAP_REASON}" in run.stderr, \
+    assert f"holiday.depth.png, stereo.disparity.png, sunset.depth-preview.png: " \
+        f"{LONE_MAP_REASON}" in run.stderr, \
         run.stderr
     cv2.imwrite(str(tmp_path / "holiday.jpg"), textured_image(20, 30))  # its photo comes
-    assert [p.name for p in scan_folder(tmp_path).lone_maps] == ["stereo.disparity.png"]
+    assert [p.name for p in scan_folder(tmp_path).lone_maps] == [
+        "stereo.disparity.png", "sunset.depth-preview.png"]

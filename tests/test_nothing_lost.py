@@ -172,28 +172,51 @@ def test_a_report_that_cannot_be_written_fails_the_run(tmp_path):
     run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stderr
-    assert "kbbatch-run-report.json: files of another's, not kbbatch run reports; kept, so no " \
-        "report was written" in run.stderr, run.stderr
+    assert "kbbatch-run-report.json: files of another's, not this folder's run reports; kept, " \
+        "so no report was written" in run.stderr, run.stderr
     assert visible_clips(out) == ["a.mp4"]
 
 
 def test_a_file_of_the_users_under_the_reports_name_is_kept(tmp_path):
     """A file kbbatch did not write is never replaced: the user's own kbbatch-report.json in
-    the output folder was overwritten by the run report without a word."""
+    the output folder was overwritten by the run report without a word; so was a JSON file
+    beginning as a report does, and a report copied in from another folder."""
     folder, out = tmp_path / "in", tmp_path / "out"
     photo(folder / "a.jpg", seed=1)
     out.mkdir()
-    (out / "kbbatch-report.json").write_text('{"my": "own notes"}')
-    for _ in range(2):  # the second run finds its own report under the other name
+    theirs = [json.dumps({"folder": "holiday 2025", "output_folder": "x", "clips": [],
+                          "started_at": "2025"}, indent=2),  # begins as a report does
+              '{"my": "own notes"}']
+    for content in theirs:
+        (out / "kbbatch-report.json").write_text(content)
         run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
                              capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, run.stderr
-        assert (out / "kbbatch-report.json").read_text() == '{"my": "own notes"}'
-        assert "kbbatch-report.json: not a kbbatch run report (a file of yours?); kept, this " \
-            f"run's report is {out / 'kbbatch-run-report.json'}" in run.stdout + run.stderr
+        assert (out / "kbbatch-report.json").read_text() == content
+        assert "kbbatch-report.json: not this folder's run report (a file of yours, or a " \
+            f"report copied from another folder); kept, this run's report is " \
+            f"{out / 'kbbatch-run-report.json'}" in run.stderr, run.stderr
         report = json.loads((out / "kbbatch-run-report.json").read_text())
         [clip] = report["clips"]
     assert clip["status"] == "skipped" and clip["plan"], "the first run's report was read"
+    # removed, the next run reads its details under the other name, and leaves one report
+    (out / "kbbatch-report.json").unlink()
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and "not this folder's" not in run.stderr, run.stderr
+    [clip] = json.loads((out / "kbbatch-report.json").read_text())["clips"]
+    assert clip["status"] == "skipped" and clip["plan"] and clip["preset"], clip
+    assert not (out / "kbbatch-run-report.json").exists()
+    # a report copied from another output folder is not this one's
+    other = tmp_path / "other"
+    other.mkdir()
+    copied = (out / "kbbatch-report.json").read_text()
+    (other / "kbbatch-report.json").write_text(copied)
+    run = subprocess.run([*CLI, str(folder), "-o", str(other), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (other / "kbbatch-report.json").read_text() == copied
+    assert (other / "kbbatch-run-report.json").is_file()
 
 
 def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finished(
@@ -1203,6 +1226,9 @@ def test_broken_links_and_subfolders_are_reported(tmp_path, quick_preset):
     (folder / "crops-previews").mkdir()  # ...beside its previews
     photo(folder / "team-contact.jpg", seed=4)  # a photo so named, with no previews beside it
     (folder / "clips").mkdir()  # earlier clips: no photos, nothing to advise
+    photo(folder / "crops-previews" / "a.jpg", seed=8)  # `plan`'s previews: no advice either
+    photo(folder / "crops-previews" / "contact-sheet.png", seed=9)
+    (folder / "again").symlink_to(folder)  # a link back to the folder itself
     (folder / "clips" / "a.mp4").write_bytes(b"a clip")
     photo(folder / "holiday.depth.png", seed=7)  # a photo saved under a map's name
     report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False)

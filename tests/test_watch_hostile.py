@@ -746,17 +746,21 @@ def test_status_does_not_count_the_photos_the_daemons_manifest_excludes(tmp_path
     status` counted it as queued and waiting to be taken."""
     inbox, outbox, preset = folders(tmp_path)
     manifest = tmp_path / "m.json"
-    manifest.write_text(json.dumps({"version": 1, "images": {"skip.jpg": {"exclude": True}}}))
+    manifest.write_text(json.dumps({"version": 1, "images": {"skip.jpg": {"exclude": True},
+                                                             "NEAR.JPG": {"exclude": True}}}))
     drop(inbox, "skip.jpg", photo_bytes(tmp_path, 1))
+    drop(inbox, "near.jpg", photo_bytes(tmp_path, 2))  # a near miss: made, but said
     daemon = start_daemon(inbox, outbox, preset, "--manifest", str(manifest))
     try:
-        wait_for(lambda: "skip.jpg: excluded by the manifest" in daemon_log(tmp_path), 120,
-                 "the photo passed over")
+        wait_for(lambda: "skip.jpg: excluded by the manifest" in daemon_log(tmp_path)
+                 and (outbox / "near.mp4").is_file(), 120, "the photos passed over and made")
     finally:
         assert stop(daemon) == 0
+    assert "near.jpg: the manifest's entry 'NEAR.JPG' is not its exact file name, so it does " \
+        "not apply" in daemon_log(tmp_path)
     drop(inbox, "new.jpg", photo_bytes(tmp_path, 3))
     status = subprocess.run([*CLI, "status", str(outbox)], capture_output=True, text=True)
-    assert "queued 1, running 0, done 0" in status.stdout, status.stdout
+    assert "queued 1, running 0, done 1" in status.stdout, status.stdout
     assert f"WAITING 1 photo(s) in the inbox {inbox}" in status.stdout, status.stdout
 
 
