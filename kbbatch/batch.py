@@ -10,6 +10,7 @@ import contextlib
 import datetime
 import json
 import os
+import sqlite3
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
@@ -106,6 +107,9 @@ class RunReport:
     """While the run is unfinished: what earlier reports said of the clips it has not reached
     (a run killed outright left a report without them, and the next run reported each clip
     it skipped as 0 frames, with no plan)."""
+    journal_id: str | None = None
+    """The output folder's journal's id: the report is known as the folder's after the folder
+    was moved or renamed (it names the folder it was written in)."""
 
     @property
     def failed(self) -> list[ClipResult]:
@@ -127,7 +131,7 @@ class RunReport:
              "started_at": self.started_at, "finished_at": self.finished_at,
              "stopped_by": self.stopped_by, "not_started": self.not_started,
              "notes": self.notes, "device": self.device,
-             "onnx_providers": self.onnx_providers,
+             "onnx_providers": self.onnx_providers, "journal_id": self.journal_id,
              "clips": [asdict(r) for r in self.results]}
             | ({"made_before": self.made_before} if self.made_before else {}), indent=2,
         )
@@ -186,9 +190,15 @@ def foreign_report_note(output_folder: Path, written: Path | None) -> str:
             + (f", this run's report is {written}" if written else ""))
 
 
+REPORT_KEYS = frozenset({"folder", "output_folder", "preset", "started_at", "clips"})
+"""What every run report holds (the reports of earlier versions too)."""
+
+
 def is_run_report(path: Path, output_folder: Path) -> bool:
     """Whether path is a run report of this output folder: a file of the user's that begins
-    like one, or a report copied from another folder, is not (both were overwritten)."""
+    like one, or a report copied in from another folder, is not (both were overwritten). A
+    folder moved or renamed is still the same: its journal, moved with it, has the id the
+    report names."""
     stamp = _stamp(path)
     if stamp is None or os.path.islink(path) or not path.is_file():
         return False
@@ -199,11 +209,29 @@ def is_run_report(path: Path, output_folder: Path) -> bool:
             return False
         report = json.loads(path.read_text(encoding="utf-8"))
         written_for = Path(report["output_folder"])
-        return ("clips" in report and "started_at" in report
-                and (written_for == output_folder
-                     or written_for.resolve() == output_folder.resolve()))
-    except (OSError, ValueError, KeyError, TypeError, RuntimeError):
+        if not (report.keys() >= REPORT_KEYS and written_for.is_absolute()):
+            return False
+        if written_for == output_folder or written_for.resolve() == output_folder.resolve():
+            return True
+        return report.get("journal_id") is not None and \
+            report["journal_id"] == _journal_identity(output_folder)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RuntimeError):
         return False
+
+
+def _journal_identity(output_folder: Path) -> str | None:
+    from kbbatch.journal import JOURNAL_NAME, Journal
+
+    if not (output_folder / JOURNAL_NAME).is_file():
+        return None
+    try:
+        journal = Journal(output_folder, read_only=True)
+    except (sqlite3.Error, OSError):
+        return None
+    try:
+        return journal.identity()
+    finally:
+        journal.close()
 
 
 def report_path(output_folder: Path) -> Path | None:
@@ -236,11 +264,13 @@ def _last_report(output_folder: Path) -> dict:
 
 
 def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
-    """The clips the folder's last report describes as made (or carried), by source and clip."""
+    """The clips the folder's last report describes as made (or carried), by source and clip
+    name (the folder may have been renamed since)."""
     report = _last_report(output_folder)
     clips = report.get("made_before"), report.get("clips")  # the run's own last
     try:
-        return {(clip["source"], clip["output"]): clip for listed in clips for clip in listed or ()
+        return {(clip["source"], Path(clip.get("output") or "").name): clip
+                for listed in clips for clip in listed or ()
                 if isinstance(clip, dict) and clip.get("status") in ("done", "skipped")
                 and clip.get("plan")}
     except (KeyError, TypeError):
@@ -250,11 +280,28 @@ def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
 def _as_made_before(result: ClipResult, made_before: dict[tuple[str, str], dict]
                     ) -> ClipResult:
     """A skipped clip with what the report of the run that made it said of it."""
-    before = made_before.get((result.source, result.output or ""))
+    before = made_before.get((result.source, Path(result.output or "").name))
     if result.status != "skipped" or before is None:
         return result
     return replace(result, **{name: before.get(name) for name in CARRIED_FIELDS
                               if before.get(name) is not None})
+
+
+def _renamed_to(manifest: Manifest, key: str, photos: list[Path]) -> str:
+    """The photo whose bytes the entry under key was planned for (`photo_sha256`): the photo
+    renamed since, its crops kept under the old name."""
+    from kbbatch.fingerprint import file_sha256
+
+    planned_for = manifest.entries[key].data.get("photo_sha256")
+    if not planned_for:
+        return ""
+    for photo in photos:
+        with contextlib.suppress(OSError):
+            if file_sha256(photo) == planned_for:
+                return (f"; {photo.name!r} has the bytes it was planned for (renamed?): "
+                        + ("it has an entry of its own, so remove this one"
+                           if photo.name in manifest.entries else "give the entry its name"))
+    return ""
 
 
 def _nearly_named(key: str, photos: list[Path]) -> str:
@@ -502,7 +549,8 @@ def run_folder(
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "
                                   f"that file name in {folder} (keys are plain file names)"
-                                  f"{_nearly_named(name, scan.photos)}"))
+                                  f"{_nearly_named(name, scan.photos)}"
+                                  f"{_renamed_to(manifest, name, scan.photos)}"))
     stop: dict = {}
     try:
         remove_partial_clips(output_folder)
@@ -512,6 +560,7 @@ def run_folder(
         lock.release()
         raise OutputFolderError(str(error)) from error
     made_before = _clips_of_last_report(output_folder)
+    journal_id = journal.identity()
     written_at = [0.0]
 
     def report_so_far(every_s: float = REPORT_EVERY_S) -> None:
@@ -522,20 +571,23 @@ def run_folder(
             return
         RunReport(str(folder_key(folder)), str(output_folder), preset.name, list(results),
                   notes, device=options.device, started_at=started_at,
-                  made_before=list(made_before.values())).write(output_folder)
+                  made_before=list(made_before.values()),
+                  journal_id=journal_id).write(output_folder)
         written_at[0] = time.monotonic()
 
     report_so_far(every_s=0.0)
     names = output_names(scan.photos)
     bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
                        disable=not show_progress)
-    identity = folder_identity(output_folder)
+    identity, photos_identity = folder_identity(output_folder), folder_identity(folder)
 
     def jobs() -> Iterator[ClipJob]:
         """The photos to make, each started in the journal as the executor takes it."""
         for photo in scan.photos:
             if folder_identity(output_folder) != identity:
                 stop["by"] = FOLDER_GONE
+            elif folder_identity(folder) != photos_identity:
+                stop["by"] = PHOTOS_GONE
             if stop:
                 return
             entry = manifest.entry(photo.name, photo.parent) if manifest else None
@@ -565,6 +617,14 @@ def run_folder(
             with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
                                     ) as rendered:
                 for job, result in rendered:
+                    gone = (FOLDER_GONE if folder_identity(output_folder) != identity
+                            else PHOTOS_GONE if folder_identity(folder) != photos_identity
+                            else None)
+                    if result.status == "failed" and gone:
+                        # not the photo's fault (its temporary clip, or the photo itself, was
+                        # no longer there), nor removed by its owner: taken again
+                        result.status = "interrupted"
+                        result.error = f"{job.source}: interrupted by {gone}"
                     results.append(finish_job(journal, job, result))
                     bar.update()
                     report_so_far()
@@ -595,7 +655,7 @@ def run_folder(
                            if str(photo_key(photo)) not in seen]
             report = RunReport(str(folder_key(folder)), str(output_folder), preset.name,
                                results, notes, stop.get("by"), options.device, providers_used(),
-                               started_at, utc_now(), not_started)
+                               started_at, utc_now(), not_started, journal_id=journal_id)
             if folder_identity(output_folder) != identity:  # not made again: the user's doing
                 lock.release()
                 raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
@@ -616,6 +676,8 @@ REPORT_EVERY_S = 10.0
 is the whole report: after every clip, a run of thousands would write gigabytes)."""
 
 FOLDER_GONE = "the output folder removed or renamed"
+PHOTOS_GONE = "the photo folder removed or renamed"
+"""A photo folder renamed mid-run read as every photo after removed by its owner: exit 0."""
 DISK_FULL = "a full output disk"
 
 
@@ -662,7 +724,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
     to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
     from kbbatch.fingerprint import file_sha256
-    from kbbatch.images import unreadable_reason
+    from kbbatch.images import capture_time, unreadable_reason
     from kbbatch.journal import JournalError, source_fingerprint
 
     try:
@@ -678,6 +740,10 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         adopted = journal.adopt_marked_clip(source, fingerprint, settings, content,
                                             output_folder, preferred)
         previous = journal.job_of(source, content)
+        taken = capture_time(source)
+        if previous is not None and previous.of_another_folder(content, taken):
+            journal.set_aside(source)  # its clip stays that photo's, under its name
+            previous = journal.job_of(source, content)  # this directory's own, set aside
         name = journal.clip_name(source, content, preferred, output_folder, options.save_depth)
         output = output_folder / name
         up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
@@ -688,7 +754,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         name = journal.name_to_make(source, content, preferred, output_folder,
                                     options.save_depth, name)
         output = output_folder / name
-        journal.start(source, fingerprint, settings[0], name, content)
+        journal.start(source, fingerprint, settings[0], name, content, taken)
     except JournalError as error:
         # a full disk: not the photo's fault, and the photos after it would fail too
         return ClipResult(str(source), None, "no_space" if error.disk_full else "failed", 0.0,
@@ -792,18 +858,42 @@ def _keeps_its_entry(entry: ManifestEntry | None, replan: bool) -> bool:
 
 
 def _merged_plans(manifest_path: Path, folder: Path, planned_entries: dict[str, dict],
-                  replan: bool) -> dict[str, dict]:
-    """The manifest as it is on disk now, with the new plans: read again at the end, as an
-    edit saved while the photos were planned (from `kbbatch review`) was written over with
-    the copy read at the start."""
+                  replan: bool, renamed: dict[str, str]) -> dict[str, dict]:
+    """The manifest as it is on disk now, with the new plans and the entries of renamed
+    photos under their new names: read again at the end, as an edit saved while the photos
+    were planned (from `kbbatch review`) was written over with the copy read at the start."""
     current = existing_manifest(manifest_path)
     entries = {name: entry.data for name, entry in current.entries.items()} if current else {}
+    for new, old in renamed.items():
+        if old in entries and new not in entries:
+            entries[new] = entries.pop(old)
     for name, planned in planned_entries.items():
-        entry = current.entry(name, folder) if current else None
+        entry = current.entry(renamed.get(name, name), folder) if current else None
         if _keeps_its_entry(entry, replan):
             continue  # crops or an exclude saved meanwhile: the user's
-        entries[entry.image if entry else name] = _with_own_fields(planned, entry)
+        entries[name if name in renamed else entry.image if entry else name] = \
+            _with_own_fields(planned, entry)
     return entries
+
+
+def renamed_photos(manifest: Manifest, photos: list[Path]) -> dict[str, str]:
+    """{new name: old key} of photos renamed since they were planned: a key naming no photo
+    whose `photo_sha256` is the bytes of a photo without an entry. `plan` kept such an entry
+    silently, planned the photo afresh (its crops lost), and the render failed on it."""
+    from kbbatch.fingerprint import file_sha256
+
+    names = {photo.name for photo in photos}
+    orphans = {manifest.entries[key].data.get("photo_sha256"): key
+               for key in manifest.unmatched_images(names)}
+    orphans.pop(None, None)
+    renamed: dict[str, str] = {}
+    for photo in photos:
+        if orphans and manifest.entry(photo.name, photo.parent) is None:
+            with contextlib.suppress(OSError):
+                old = orphans.pop(file_sha256(photo), None)
+                if old is not None:
+                    renamed[photo.name] = old
+    return renamed
 
 
 def _kept_crops_note(entry: ManifestEntry, source: Path) -> str | None:
@@ -862,10 +952,15 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
     sources = [source for source in scan.photos
                if not (existing and existing.depth_map_of(source))]  # a map it names: no photo
     names = output_names(sources)
+    renamed = renamed_photos(existing, sources) if existing else {}
+    results += [PlanResult(str(manifest_path), "note", note=(
+        f"{manifest_path}: the entry of {old!r} is now {new!r}'s: no photo has the old name, "
+        "and this one has the bytes it was planned for (renamed)")) for new, old in renamed.items()]
     for source in progress_bar(sources, desc="planning", unit="photo",
                                disable=not show_progress):
         started = time.perf_counter()
-        entry = existing.entry(source.name, source.parent) if existing else None
+        entry = (existing.entry(renamed.get(source.name, source.name), source.parent)
+                 if existing else None)
         if _keeps_its_entry(entry, replan):
             results.append(PlanResult(str(source), "kept", entry=entry.data,
                                       note=_kept_crops_note(entry, source)))
@@ -894,7 +989,15 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
                 raise KeyboardInterrupt from error
             message = f"{source}: {type(error).__name__}: {error}"
             results.append(PlanResult(str(source), "failed", error=message))
-    write_manifest(manifest_path, _merged_plans(manifest_path, folder, planned_entries, replan))
+    write_manifest(manifest_path, _merged_plans(manifest_path, folder, planned_entries, replan,
+                                                renamed))
+    if existing is not None:  # kept as they are, but a render of the manifest fails on them
+        results += [PlanResult(str(manifest_path), "note", note=(
+            f"{manifest_path}: image {name!r}: no photo of that file name in {folder}; its "
+            f"entry is kept, and a render of the manifest fails on it"
+            f"{_nearly_named(name, sources)}"))
+            for name in existing.unmatched_images({source.name for source in sources})
+            if not existing.entries[name].excluded and name not in renamed.values()]
     if previews:  # beside the previews: a sheet beside the photos became a clip of its own
         why = _written_or_why(preview_dir / CONTACT_SHEET_NAME, contact_sheet(previews))
         if why:

@@ -20,6 +20,7 @@ from kbbatch.batch import (
     CORES_PER_JOB,
     DISK_FULL,
     MEMORY_PER_JOB_GIB,
+    PHOTOS_GONE,
     EmptyFolderError,
     RunReport,
     default_jobs,
@@ -289,6 +290,11 @@ def render(folder: Path, output: Path | None, manifest_path: Path | None, save_d
         click.echo(f"stopped: {report.no_space[0].error}; the photos after it were not "
                    "started: free some space and run again to finish", err=True)
         sys.exit(1)  # incomplete, as when photos fail
+    if report.stopped_by == PHOTOS_GONE:
+        click.echo(f"stopped: {report.folder}: removed or renamed during the run; "
+                   f"{len(report.not_started)} photo(s) not started (run kbbatch on the folder "
+                   "where it is now to finish)", err=True)
+        sys.exit(1)
     if report.stopped_by:
         click.echo(f"stopped by {report.stopped_by} after the clip in progress; run again to "
                    "finish", err=True)

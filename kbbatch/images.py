@@ -328,6 +328,26 @@ TURNED_ORIENTATIONS = (5, 6, 7, 8)
 """EXIF orientations that swap width and height (the camera held on its side)."""
 
 
+EXIF_IFD = 0x8769
+EXIF_TAKEN = 0x9003  # DateTimeOriginal
+EXIF_TAKEN_SUBSECOND = 0x9291  # SubsecTimeOriginal
+
+
+def capture_time(path: Path) -> str | None:
+    """When the camera took the photo (EXIF DateTimeOriginal, to the subsecond where given),
+    None where the file does not say: an edit keeps it, another card's photo of the same
+    name does not share it."""
+    try:
+        with Image.open(path) as image:
+            taken = image.getexif().get_ifd(EXIF_IFD)
+    except Exception:  # a header Pillow cannot read (or a bomb) says nothing of it
+        return None
+    when = taken.get(EXIF_TAKEN)
+    if not isinstance(when, str) or not when.strip(" :0\x00"):
+        return None
+    return when + (f".{taken[EXIF_TAKEN_SUBSECOND]}" if EXIF_TAKEN_SUBSECOND in taken else "")
+
+
 def upright_size(path: Path) -> tuple[int, int]:
     """(width, height) of the photo read_image gives, from its header where Pillow reads one:
     `plan` checking kept crops against each photo's size decoded every photo whole. (A JPEG

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import sqlite3
 import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -28,7 +30,8 @@ CONTENT_NAME_HEX = 8
 COLUMNS = (("source", "TEXT PRIMARY KEY"), ("fingerprint", "TEXT NOT NULL"),
            ("settings", "TEXT NOT NULL"), ("state", "TEXT NOT NULL"), ("output", "TEXT"),
            ("error", "TEXT"), ("attempts", "INTEGER NOT NULL DEFAULT 0"), ("seconds", "REAL"),
-           ("updated", "REAL NOT NULL"), ("content", "TEXT"), ("clip", "TEXT"))
+           ("updated", "REAL NOT NULL"), ("content", "TEXT"), ("clip", "TEXT"),
+           ("folder", "TEXT"), ("taken", "TEXT"))
 
 
 UNDECODABLE_PREFIX = "//bytes:"
@@ -54,6 +57,16 @@ def folder_key(folder: Path) -> Path:
 GONE_MARK = " (removed from the inbox)"
 """Added to the journal's record of a photo deleted from its folder (the inbox, or a batch's)
 after its clip was begun (worded for the inbox, as journals already hold it)."""
+
+
+def aside_name(name: str, folder: str, content: str) -> str:
+    """Where the record of a photo (of these bytes) of another directory at the same path
+    (folder: its folder_id) is kept: its clip stays its own, and comes back with that
+    directory, at this path or another."""
+    return f"{name} (of folder {folder}, {content[:CONTENT_NAME_HEX]})"
+
+
+_ASIDE = re.compile(r" \(of folder \d+:\d+, [0-9a-f]+\)$")
 
 
 def in_folder(source: Path, folder: Path) -> bool:
@@ -112,10 +125,21 @@ class Job:
     updated: float
     content: str | None  # sha256 of the photo's bytes
     clip: str | None  # size and mtime of the finished clip, to notice a truncated one
+    folder: str | None = None  # folder_id of the photo's folder when it was started
+    taken: str | None = None  # images.capture_time of the photo then
 
     @property
     def name(self) -> str:
         return Path(self.source).name
+
+    def of_another_folder(self, content: str, taken: str | None) -> bool:
+        """Made, of other bytes taken at another moment (EXIF), from a photo of the same path
+        in another directory than the one there now: another card's photo, not an edit (its
+        clip was replaced). Both are needed: a folder remounted or restored is a new
+        directory too, and its edited photos keep the moment they were taken."""
+        return (self.state == "done" and self.content not in (None, content)
+                and None not in (self.folder, self.taken, taken) and self.taken != taken
+                and folder_id(Path(self.source).parent) not in (None, self.folder))
 
     def made_from_other_bytes(self, name: str, content: str, output: Path) -> bool:
         """Whether making `name` again now replaces a finished clip of this job made from other
@@ -128,6 +152,17 @@ class Job:
 ADOPTED_ATTEMPTS = 0
 """The attempts of a done job that no run made: a clip adopted by its mark
 (Journal.adopt_marked_clip). A job made by a run has at least one."""
+
+
+def folder_id(folder: Path) -> str | None:
+    """The directory a folder path is now (device and inode): a folder made again at the same
+    path (an ingest folder renamed aside and a new card copied into a new one) is another,
+    and its photos are not edits of the first one's."""
+    try:
+        stat = os.stat(folder)
+    except OSError:
+        return None
+    return f"{stat.st_dev}:{stat.st_ino}"
 
 
 def source_fingerprint(path: Path) -> str:
@@ -187,6 +222,7 @@ class Journal:
         self.read_only = read_only
         if read_only:
             self.connection = self._read_only_connection()
+            self._present = self._columns()
             return
         folder.mkdir(parents=True, exist_ok=True)
         self.connection = sqlite3.connect(self.path, timeout=30, isolation_level=None)
@@ -194,10 +230,17 @@ class Journal:
         self.connection.execute("PRAGMA synchronous=FULL")
         self.connection.execute("CREATE TABLE IF NOT EXISTS jobs ("
                                 + ", ".join(f"{n} {t}" for n, t in COLUMNS) + ")")
-        present = {row[1] for row in self.connection.execute("PRAGMA table_info(jobs)")}
         for name, kind in COLUMNS:  # journals written by earlier versions
-            if name not in present:
+            if name not in self._columns():
                 self.connection.execute(f"ALTER TABLE jobs ADD COLUMN {name} {kind}")
+        self._present = self._columns()
+        # which output folder this is, wherever it is moved (RunReport.journal_id); without
+        # it (a full disk) reports are known by the folder they name alone
+        with contextlib.suppress(sqlite3.OperationalError):
+            self.connection.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY,"
+                                    " value TEXT)")
+            self.connection.execute("INSERT OR IGNORE INTO meta VALUES ('id', ?)",
+                                    (uuid.uuid4().hex,))
         # looked up per photo (Journal.owners, Journal.job_of): a scan each in a large journal;
         # only a speed-up, so a full disk that cannot take it is no reason to stop
         with contextlib.suppress(sqlite3.OperationalError):
@@ -221,11 +264,23 @@ class Journal:
         return sqlite3.connect(f"{uri}?mode=ro&immutable=1", uri=True, timeout=30,
                                isolation_level=None)
 
+    def identity(self) -> str | None:
+        """The id made with the journal (None for one of an earlier version only looked at)."""
+        try:
+            row = self.connection.execute("SELECT value FROM meta WHERE key = 'id'").fetchone()
+        except sqlite3.OperationalError:
+            return None
+        return row[0] if row else None
+
+    def _columns(self) -> set[str]:
+        return {row[1] for row in self.connection.execute("PRAGMA table_info(jobs)")}
+
     def close(self) -> None:
         self.connection.close()
 
     def _select(self, where: str = "", args: tuple = ()) -> list[Job]:
-        names = ", ".join(n for n, _ in COLUMNS)
+        # a journal of an earlier version, only looked at (`kbbatch status`), lacks columns
+        names = ", ".join(n if n in self._present else "NULL" for n, _ in COLUMNS)
         rows = self.connection.execute(f"SELECT {names} FROM jobs {where} ORDER BY source", args)
         return [replace(job, source=_restored(job.source), output=_restored(job.output))
                 for job in (Job(*row) for row in rows)]
@@ -241,15 +296,15 @@ class Journal:
 
     @_guarded
     def start(self, source: Path, fingerprint: str, settings: str, output: str,
-              content: str) -> None:
+              content: str, taken: str | None = None) -> None:
         previous = self.get(source)
         attempts = previous.attempts if previous and previous.fingerprint == fingerprint else 0
         self.connection.execute(
             "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output, error,"
-            " attempts, seconds, updated, content, clip)"
-            " VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?, ?, NULL)",
+            " attempts, seconds, updated, content, clip, folder, taken)"
+            " VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?, ?, NULL, ?, ?)",
             (_stored(source), fingerprint, settings, _stored(output), attempts + 1, time.time(),
-             content),
+             content, folder_id(Path(source).parent), taken),
         )
 
     @_guarded
@@ -263,13 +318,25 @@ class Journal:
             (state, seconds, _message(error), clip, time.time(), content, _stored(source)))
 
     @_guarded
-    def moved(self, source: Path, destination: Path) -> None:
-        """The photo now lies at destination (done/ or failed/); its clip stays its own."""
+    def moved(self, source: Path, destination: Path, same_folder: bool = False) -> None:
+        """The photo now lies at destination (done/ or failed/); its clip stays its own.
+        Its folder is told again at its next start (a folder moved to another disk is a new
+        directory, and its photos no new card's) unless same_folder."""
         with self.connection:
             self.connection.execute("DELETE FROM jobs WHERE source = ?",
                                     (_stored(destination),))
-            self.connection.execute("UPDATE jobs SET source = ? WHERE source = ?",
-                                    (_stored(destination), _stored(source)))
+            self.connection.execute(
+                "UPDATE jobs SET source = ?, folder = CASE WHEN ? THEN folder END"
+                " WHERE source = ?", (_stored(destination), same_folder, _stored(source)))
+
+    @_guarded
+    def set_aside(self, source: Path) -> None:
+        """The record of a photo of another directory at this path (Job.of_another_folder)
+        goes aside (aside_name), so that this photo is no edit of it."""
+        job = self.get(source)
+        if job is not None and job.folder is not None and job.content is not None:
+            self.moved(source, source.with_name(aside_name(source.name, job.folder,
+                                                           job.content)), True)
 
     @_guarded
     def job_of(self, source: Path, content: str) -> Job | None:
@@ -278,12 +345,24 @@ class Journal:
         latest one kept under this path, the rest dropped. Without it a folder run by two
         spellings made every clip again at each switch. Only records of the same bytes count:
         a link since pointed at another card holds other photos of the same names, whose
-        clips are not this photo's."""
+        clips are not this photo's. A record of the same bytes and name whose photo is no
+        longer where it was is this photo's too (its folder moved or renamed): left under the
+        old path, an edit after the move made a second clip beside the stale one."""
         own = self.get(source)
         for job in self._select("WHERE content = ? AND source != ?",
                                 (content, _stored(source))):
             other = Path(job.source)
-            if other.name != source.name or not in_folder(other, source.parent):
+            if own is None and other.name == aside_name(
+                    source.name, folder_id(source.parent) or "", content):
+                self.moved(other, source, True)  # its directory is back (here, or moved)
+                own = self.get(source)
+                continue
+            if other.name != source.name:
+                continue
+            if not in_folder(other, source.parent):
+                if own is None and not os.path.lexists(other):
+                    self.moved(other, source)
+                    own = self.get(source)
                 continue
             if own is None or job.updated > own.updated:
                 self.moved(other, source)
@@ -317,7 +396,8 @@ class Journal:
         that replaces its clip. (The same bytes put back are still found up to date, by
         content.) Whether anything was moved aside."""
         job = self.get(source)
-        if job is None or job.state != "done" or source.name.endswith(GONE_MARK):
+        if job is None or job.state != "done" or source.name.endswith(GONE_MARK) \
+                or _ASIDE.search(source.name):
             return False
         self.moved(source, source.with_name(f"{source.name}{GONE_MARK}"))
         return True

@@ -1201,6 +1201,25 @@ def note_inbox(outbox: Path, inbox: Path, manifest: Path | None) -> None:
                     "waiting in the inbox", outbox / INBOX_NOTE, error.strerror or error)
 
 
+MISSING_NAMED_MAX = 3
+"""`kbbatch status` names at most this many clips deleted by hand, then counts the rest."""
+
+
+def missing_clip_lines(outbox: Path, journal: Journal) -> list[str]:
+    """Clips the journal counts done that are no longer in the folder (deleted by hand):
+    status read as if every clip were there. Those of photos still where they were are made
+    again by the next run of their folder."""
+    missing = sorted(job.output for job in journal.jobs("done")
+                     if job.output and not os.path.lexists(outbox / job.output)
+                     and os.path.lexists(job.source))
+    if not missing:
+        return []
+    more = len(missing) - MISSING_NAMED_MAX
+    return [f"MISSING {len(missing)} clip(s) counted done are not in {outbox} (deleted?): "
+            + ", ".join(missing[:MISSING_NAMED_MAX]) + (f" and {more} more" if more > 0 else "")
+            + "; the next run of their photos' folder makes them again"]
+
+
 def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] | None:
     """The inbox of the daemon that writes into outbox, and its photos no job has been
     started for yet: they waited there while `kbbatch status` said "queued 0"."""
@@ -1246,6 +1265,8 @@ def status_lines(outbox: Path) -> list[str]:
         lines += [f"FAILED {job.source}: {(job.error or '').removeprefix(f'{job.source}: ')}"
                   for job in journal.jobs("failed")]  # errors most often begin with the path
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]
+        if waiting is None:  # a batch's folder (a daemon's clips are taken away as made)
+            lines += missing_clip_lines(outbox, journal)
         running = journal.jobs("running")
         if running and not _folder_in_use(outbox):  # its run was killed (kill -9, power cut)
             lines += [f"INTERRUPTED {job.source} (no kbbatch is working in this folder; the "

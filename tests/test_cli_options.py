@@ -150,6 +150,42 @@ def test_plan_prints_the_render_command_that_repeats_its_options(tmp_path):
         "preview", 1.5, "ramp")
 
 
+def test_plan_carries_a_renamed_photos_entry_and_the_render_names_it(tmp_path):
+    """A photo renamed after `plan`: the second plan kept the old entry without a word and
+    planned the photo afresh (its crops lost), and the render it suggested failed on the
+    old entry; the render alone did not say the photo is there under a new name."""
+    import json
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from .conftest import textured_image
+
+    photos, manifest = tmp_path / "photos", tmp_path / "m.json"
+    photos.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(photos / "cup.jpg")
+    options = ["--preset", "preview", "--depth", "ramp", "--quiet"]
+    render = [str(photos), "-o", str(tmp_path / "out"), "--manifest", str(manifest),
+              "--duration", "0.4", *options]
+    result = CliRunner().invoke(cli.main, ["plan", str(photos), "-o", str(manifest), *options])
+    assert result.exit_code == 0 and "NOTE" not in result.output, result.output
+    planned = json.loads(manifest.read_text())
+    planned["images"]["cup.jpg"]["exclude"] = False  # the user's, carried with the crops
+    manifest.write_text(json.dumps(planned))
+    (photos / "cup.jpg").rename(photos / "mug.jpg")
+    result = CliRunner().invoke(cli.main, render)
+    assert result.exit_code == 1, result.output
+    assert "image 'cup.jpg': no photo of that file name" in result.output
+    assert "'mug.jpg' has the bytes it was planned for (renamed?): give the entry its name" \
+        in result.output, result.output
+    result = CliRunner().invoke(cli.main, ["plan", str(photos), "-o", str(manifest), *options])
+    assert result.exit_code == 0, result.output
+    assert "the entry of 'cup.jpg' is now 'mug.jpg''s" in result.output, result.output
+    assert json.loads(manifest.read_text())["images"] == {"mug.jpg": planned["images"]["cup.jpg"]}
+    result = CliRunner().invoke(cli.main, render)
+    assert result.exit_code == 0, result.output
+
+
 def test_plan_checks_where_the_manifest_goes_before_planning(tmp_path):
     """Into a folder that cannot be written (or under a file), plan worked through every
     photo and then ended in a traceback, the planning lost."""

@@ -217,6 +217,140 @@ def test_a_file_of_the_users_under_the_reports_name_is_kept(tmp_path):
     assert run.returncode == 0, run.stderr
     assert (other / "kbbatch-report.json").read_text() == copied
     assert (other / "kbbatch-run-report.json").is_file()
+    # ... nor one of a folder that is not here (another machine's, a disk not mounted)
+    third = tmp_path / "third"
+    third.mkdir()
+    elsewhere = json.dumps(json.loads(copied) | {"output_folder": "/mnt/nas/clips"})
+    for name in ("kbbatch-report.json", "kbbatch-run-report.json"):
+        (third / name).write_text(elsewhere)
+    run = subprocess.run([*CLI, str(folder), "-o", str(third), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1 and "no report was written" in run.stderr, run.stderr
+    for name in ("kbbatch-report.json", "kbbatch-run-report.json"):
+        assert (third / name).read_text() == elsewhere
+
+
+def test_an_output_folder_moved_or_renamed_keeps_its_report(tmp_path):
+    """Its report names the folder it was written in: taken for another folder's once the
+    folder was renamed, it was kept as a user's file, a second report was written beside
+    it, and the clips' plans and presets were dropped from the new one."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    moved, renamed = tmp_path / "elsewhere" / "moved", tmp_path / "elsewhere" / "renamed"
+    moved.parent.mkdir()
+    out.rename(moved)
+    for here in (moved, renamed):
+        if here == renamed:
+            moved.rename(renamed)
+        run = subprocess.run([*CLI, str(folder), "-o", str(here), *FAST_CLI],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0 and "not this folder's" not in run.stderr, run.stderr
+        assert not (here / "kbbatch-run-report.json").exists()
+        report = json.loads((here / "kbbatch-report.json").read_text())
+        [clip] = report["clips"]
+        assert report["output_folder"] == str(here)
+        assert clip["status"] == "skipped" and clip["plan"] and clip["preset"], clip
+
+
+def test_a_photo_edited_after_its_folder_moved_replaces_its_own_clip(tmp_path):
+    """The moved photos were found up to date by their bytes, but their records stayed under
+    the old paths: an edit then made a second clip under a content name beside the stale
+    one, and `status` counted three clips made for two photos."""
+    from kbbatch.journal import Journal
+
+    folder, out = tmp_path / "photos", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    photo(folder / "b.jpg", seed=2)
+    for step in ("first", "moved", "edited"):
+        if step == "moved":
+            folder = folder.rename(tmp_path / "moved")
+        if step == "edited":
+            photo(folder / "a.jpg", seed=3)
+        run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        if step == "moved":
+            assert "2 already up to date" in run.stdout + run.stderr
+    assert "that clip is replaced" in run.stderr, run.stderr
+    assert sorted(path.name for path in out.glob("*.mp4")) == ["a.mp4", "b.mp4"]
+    journal = Journal(out, read_only=True)
+    try:
+        assert journal.counts()["done"] == 2
+        assert sorted(Path(job.source).parent.name for job in journal.jobs()) == ["moved"] * 2
+    finally:
+        journal.close()
+
+
+def camera_photo(path: Path, seed: int, taken: str) -> Path:
+    """A photo as a camera writes it: with the moment it was taken (EXIF DateTimeOriginal)."""
+    exif = Image.Exif()
+    exif[0x8769] = {0x9003: taken}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(textured_image(180, 320, seed=seed)).save(path, exif=exif)
+    return path
+
+
+def test_a_new_card_in_an_ingest_folder_made_again_does_not_replace_the_first_cards_clip(
+        tmp_path):
+    """`mv ingest day1; mkdir ingest` and the next card's IMG_0001.jpg copied in: taken for an
+    edit of day 1's photo, it replaced that clip, which a timeline pointed at. An edit in
+    place (the same folder), or in a folder restored as a new directory (the moment the photo
+    was taken kept), still replaces its own clip."""
+    ingest, out = tmp_path / "ingest", tmp_path / "clips"
+
+    def run() -> subprocess.CompletedProcess:
+        done = subprocess.run([*CLI, str(ingest), "-o", str(out), *FAST_CLI],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        return done
+
+    camera_photo(ingest / "IMG_0001.jpg", 1, "2026:05:01 10:00:00")
+    run()
+    first = (out / "IMG_0001.mp4").read_bytes()
+    ingest.rename(tmp_path / "day1")
+    camera_photo(ingest / "IMG_0001.jpg", 2, "2026:05:02 09:00:00")
+    second = run()
+    assert (out / "IMG_0001.mp4").read_bytes() == first
+    [new] = [path for path in out.glob("IMG_0001.*.mp4")]
+    assert "is another photo's" in second.stderr and new.name in second.stderr, second.stderr
+    # day 1's folder back at the path is up to date under its own name
+    ingest.rename(tmp_path / "day2")
+    (tmp_path / "day1").rename(ingest)
+    assert "1 already up to date" in run().stdout
+    # restored from a copy: another directory, day 1's photo
+    ingest.rename(tmp_path / "copy")
+    shutil.copytree(tmp_path / "copy", ingest)
+    assert {path.name for path in out.glob("*.mp4")} == {"IMG_0001.mp4", new.name}
+    # an edit (the moment kept) replaces its own clip, in the restored folder and in place
+    for seed in (3, 4):
+        camera_photo(ingest / "IMG_0001.jpg", seed, "2026:05:01 10:00:00")
+        edited = run()
+        assert "that clip is replaced" in edited.stderr, edited.stderr
+        assert {path.name for path in out.glob("*.mp4")} == {"IMG_0001.mp4", new.name}
+    assert (out / "IMG_0001.mp4").read_bytes() != first
+
+
+def test_status_says_a_clip_deleted_by_hand(tmp_path):
+    """`status` counted it done, from the journal alone, as if it were there."""
+    folder, out = tmp_path / "photos", tmp_path / "out"
+    source = photo(folder / "a.jpg", seed=1)
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+
+    def status() -> str:
+        return subprocess.run([*CLI, "status", str(out)], capture_output=True,
+                              text=True).stdout
+
+    assert "MISSING" not in status()
+    (out / "a.mp4").unlink()
+    assert f"MISSING 1 clip(s) counted done are not in {out} (deleted?): a.mp4; the next " \
+        "run of their photos' folder makes them again" in status()
+    source.unlink()  # nothing to make it again from
+    assert "MISSING" not in status()
 
 
 def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finished(
@@ -713,6 +847,30 @@ def test_a_photo_deleted_during_the_batch_is_said_not_failed(tmp_path):
         ("p0.jpg", "done"), ("p1.jpg", "removed")]
     status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
     assert "done 1, failed 0" in status.stdout, status.stdout
+
+
+@pytest.mark.slow
+def test_a_photo_folder_renamed_during_the_batch_stops_it(tmp_path):
+    """Every photo after the rename was reported removed by its owner, and the run exited 0
+    with one clip of the folder's made; the photos are where the folder went."""
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    renamed = tmp_path / "renamed"
+    code, stderr = act_while_encoding(folder, out, 2.0, lambda _: folder.rename(renamed))
+    assert code == 1, stderr
+    assert f"stopped: {folder}: removed or renamed during the run" in stderr, stderr
+    assert "removed from its folder" not in stderr
+    report = json.loads((out / batch.REPORT_NAME).read_text())
+    assert report["stopped_by"] == batch.PHOTOS_GONE
+    made = {Path(c["source"]).name: c["status"] for c in report["clips"]}
+    assert made["p0.jpg"] == "done"
+    assert made.get("p1.jpg") == "interrupted" or str(folder / "p1.jpg") in report["not_started"]
+    run = subprocess.run([*CLI, str(renamed), "-o", str(out), "--depth", "ramp", "--planner",
+                          "center", "--preset", "preview", "--duration", "2.0", "--fps", "25"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert visible_clips(out) == ["p0.mp4", "p1.mp4"]
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert "done 2, failed 0" in status.stdout and "queued 0" in status.stdout, status.stdout
 
 
 def test_a_photo_deleted_after_its_job_started_leaves_no_job_or_failure(tmp_path, quick_preset):
@@ -1369,6 +1527,19 @@ def test_an_output_folder_removed_mid_run_stops_the_run_and_is_not_made_again(tm
     assert not out.exists()
 
 
+def test_an_output_folder_renamed_mid_run_does_not_fail_the_photo_in_flight(tmp_path):
+    """The clip being encoded lost its temporary file with the folder: the photo was recorded
+    FAILED with a raw FileNotFoundError naming that hidden file, not taken again."""
+    folder, out = slow_folder(tmp_path), tmp_path / "out"
+    moved = tmp_path / "moved"
+    returncode, stderr = act_while_encoding(folder, out, 4, lambda _: out.rename(moved))
+    assert returncode == 1, stderr
+    assert f"{out}: removed or renamed during the run; stopped" in stderr
+    status = subprocess.run([*CLI, "status", str(moved)], capture_output=True, text=True)
+    assert "failed 0" in status.stdout and "FileNotFoundError" not in status.stdout, \
+        status.stdout
+
+
 def linked_folder(tmp_path: Path) -> tuple[Path, Path, Path]:
     """photos/ with a.jpg, link -> photos, and the output folder's path."""
     real = tmp_path / "photos"
@@ -1483,7 +1654,7 @@ def test_a_journal_with_a_photo_under_two_spellings_settles_on_one(tmp_path, qui
     try:  # the same record under the link's spelling, as the earlier version left it
         journal.connection.execute(
             "INSERT INTO jobs SELECT ?, fingerprint, settings, state, output, error, attempts,"
-            " seconds, updated + 1, content, clip FROM jobs WHERE source = ?",
+            " seconds, updated + 1, content, clip, folder, taken FROM jobs WHERE source = ?",
             (str(link / "a.jpg"), str(real / "a.jpg")))
         assert len(journal.jobs()) == 2
     finally:

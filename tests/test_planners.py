@@ -661,7 +661,8 @@ def test_plan_into_an_existing_file_never_loses_what_is_there(tmp_path, quick_pr
     manifest_path = tmp_path / "m.json"
     manifest_path.symlink_to(repository / "m.json")  # kept in a repository, linked in
     results = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
-    assert [r.status for r in results] == ["kept", "kept", "done", "done"]
+    assert [r.status for r in results] == ["kept", "kept", "done", "done", "note"]
+    assert "image 'gone.jpg': no photo of that file name" in results[-1].note
     assert manifest_path.is_symlink()  # written through the link, not over it
     written = json.loads((repository / "m.json").read_text())["images"]
     for name in ("a.jpg", "b.jpg", "gone.jpg"):
@@ -672,7 +673,7 @@ def test_plan_into_an_existing_file_never_loses_what_is_there(tmp_path, quick_pr
     assert written["d.jpg"]["start"]["width"] > 0
     results = plan_folder(folder, manifest_path, quick_preset, options, show_progress=False,
                           replan=True)
-    assert [r.status for r in results] == ["kept", "done", "done", "done"]  # exclude stays
+    assert [r.status for r in results] == ["kept", "done", "done", "done", "note"]  # exclude stays
     written = json.loads((repository / "m.json").read_text())["images"]
     assert written["b.jpg"]["start"] != hand_crop and written["c.jpg"]["duration_s"] == 2.0
     os.mkfifo(tmp_path / "pipe.json")  # reading it to merge blocked for good

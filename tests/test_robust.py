@@ -183,18 +183,18 @@ def test_an_output_folder_that_cannot_be_written_is_a_clear_error(tmp_path, quic
 
 
 def test_disk_full_during_encoding_leaves_no_partial_clip(tmp_path):
-    """RLIMIT_FSIZE makes every write past 64 KiB fail, as a full disk would. Python ignores
+    """RLIMIT_FSIZE makes every write past 256 KiB fail, as a full disk would. Python ignores
     SIGXFSZ (as it does under a shell's `ulimit -f`); ffmpeg, started with the default
     handlers, is killed by it, and the error said only "killed by SIGXFSZ"."""
     folder = tmp_path / "in"
     folder.mkdir()
     noise = np.random.default_rng(0).integers(0, 256, (720, 1280, 3), dtype=np.uint8)
-    Image.fromarray(noise).save(folder / "a.png")  # noise: the clip needs far over 64 KiB
+    Image.fromarray(noise).save(folder / "a.png")  # noise: the clip needs far over 256 KiB
     out = tmp_path / "out"
     script = (
         "import resource, signal, sys\n"
         "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
-        "resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (262144, 262144))\n"
         "from kbbatch.cli import main\n"
         f"sys.argv = ['kbbatch', {str(folder)!r}, '-o', {str(out)!r}, '--preset', 'preview',"
         " '--depth', 'ramp', '--planner', 'center', '--quiet', '--duration', '2', '--fps', '25']\n"
