@@ -287,20 +287,26 @@ def _as_made_before(result: ClipResult, made_before: dict[tuple[str, str], dict]
                               if before.get(name) is not None})
 
 
-def _renamed_to(manifest: Manifest, key: str, photos: list[Path]) -> str:
+def _renamed_to(manifest: Manifest, key: str, photos: list[Path],
+                hashes: dict[Path, str | None]) -> str:
     """The photo whose bytes the entry under key was planned for (`photo_sha256`): the photo
-    renamed since, its crops kept under the old name."""
+    renamed since, its crops kept under the old name. hashes: each photo's sha256, as far as
+    worked out (each photo is read once however many entries are looked for)."""
     from kbbatch.fingerprint import file_sha256
 
     planned_for = manifest.entries[key].data.get("photo_sha256")
     if not planned_for:
         return ""
     for photo in photos:
-        with contextlib.suppress(OSError):
-            if file_sha256(photo) == planned_for:
-                return (f"; {photo.name!r} has the bytes it was planned for (renamed?): "
-                        + ("it has an entry of its own, so remove this one"
-                           if photo.name in manifest.entries else "give the entry its name"))
+        if photo not in hashes:
+            try:
+                hashes[photo] = file_sha256(photo)
+            except OSError:
+                hashes[photo] = None
+        if hashes[photo] == planned_for:
+            return (f"; {photo.name!r} has the bytes it was planned for (renamed?): "
+                    + ("it has an entry of its own, so remove this one"
+                       if photo.name in manifest.entries else "give the entry its name"))
     return ""
 
 
@@ -545,12 +551,13 @@ def run_folder(
                                   "regular file (a named pipe, socket or device); not read"))
     notes += [f"{manifest.path}: image {name!r} is excluded and not in {folder}; nothing to do"
               for name in gone_excluded]
+    hashes: dict[Path, str | None] = {}
     for name in missing:
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "
                                   f"that file name in {folder} (keys are plain file names)"
                                   f"{_nearly_named(name, scan.photos)}"
-                                  f"{_renamed_to(manifest, name, scan.photos)}"))
+                                  f"{_renamed_to(manifest, name, scan.photos, hashes)}"))
     stop: dict = {}
     try:
         remove_partial_clips(output_folder)
@@ -749,6 +756,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
         if not force and up_to_date and not (options.save_depth
                                              and depth_images_missing(output)):
+            journal.place(source, content, taken)
             return ClipResult(str(source), str(output), "skipped", 0.0,
                               note=ADOPTED_NOTE.format(name=name) if adopted else None)
         name = journal.name_to_make(source, content, preferred, output_folder,

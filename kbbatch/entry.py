@@ -19,16 +19,16 @@ def main() -> None:
     try:
         status = _run()
     except SystemExit as exit_:  # said and settled (an interrupt the command caught included)
+        if exit_.code == EXIT_INTERRUPTED:  # first: a Ctrl-C pressed again landed in the exec
+            _stopped_already()              # below, with a traceback and death by SIGINT
         _forget_uncaught_interrupt()
-        if exit_.code == EXIT_INTERRUPTED:
-            _stopped_already()
         raise
     except BaseException as error:
         if not interrupted(error):
             raise
+        _stopped_already()
         print("\ninterrupted: nothing partial is left; run again to finish", file=sys.stderr)
         _forget_uncaught_interrupt()
-        _stopped_already()
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(status if isinstance(status, int) else 0)
 

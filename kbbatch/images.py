@@ -329,14 +329,12 @@ TURNED_ORIENTATIONS = (5, 6, 7, 8)
 
 
 EXIF_IFD = 0x8769
-EXIF_TAKEN = 0x9003  # DateTimeOriginal
-EXIF_TAKEN_SUBSECOND = 0x9291  # SubsecTimeOriginal
+EXIF_TAKEN = 0x9003  # DateTimeOriginal (to the second: editors drop or rewrite SubsecTime)
 
 
 def capture_time(path: Path) -> str | None:
-    """When the camera took the photo (EXIF DateTimeOriginal, to the subsecond where given),
-    None where the file does not say: an edit keeps it, another card's photo of the same
-    name does not share it."""
+    """When the camera took the photo (EXIF DateTimeOriginal), None where the file does not
+    say: an edit keeps it, another card's photo of the same name does not share it."""
     try:
         with Image.open(path) as image:
             taken = image.getexif().get_ifd(EXIF_IFD)
@@ -345,7 +343,7 @@ def capture_time(path: Path) -> str | None:
     when = taken.get(EXIF_TAKEN)
     if not isinstance(when, str) or not when.strip(" :0\x00"):
         return None
-    return when + (f".{taken[EXIF_TAKEN_SUBSECOND]}" if EXIF_TAKEN_SUBSECOND in taken else "")
+    return when
 
 
 def upright_size(path: Path) -> tuple[int, int]:

@@ -133,11 +133,11 @@ class Job:
         return Path(self.source).name
 
     def of_another_folder(self, content: str, taken: str | None) -> bool:
-        """Made, of other bytes taken at another moment (EXIF), from a photo of the same path
-        in another directory than the one there now: another card's photo, not an edit (its
-        clip was replaced). Both are needed: a folder remounted or restored is a new
+        """Made (or begun), of other bytes taken at another moment (EXIF), from a photo of the
+        same path in another directory than the one there now: another card's photo, not an
+        edit (its clip was replaced). Both are needed: a folder remounted or restored is a new
         directory too, and its edited photos keep the moment they were taken."""
-        return (self.state == "done" and self.content not in (None, content)
+        return (self.content not in (None, content)  # also unfinished: its clip is there
                 and None not in (self.folder, self.taken, taken) and self.taken != taken
                 and folder_id(Path(self.source).parent) not in (None, self.folder))
 
@@ -318,16 +318,25 @@ class Journal:
             (state, seconds, _message(error), clip, time.time(), content, _stored(source)))
 
     @_guarded
-    def moved(self, source: Path, destination: Path, same_folder: bool = False) -> None:
-        """The photo now lies at destination (done/ or failed/); its clip stays its own.
-        Its folder is told again at its next start (a folder moved to another disk is a new
-        directory, and its photos no new card's) unless same_folder."""
+    def moved(self, source: Path, destination: Path) -> None:
+        """The photo now lies at destination (done/ or failed/); its clip stays its own."""
         with self.connection:
             self.connection.execute("DELETE FROM jobs WHERE source = ?",
                                     (_stored(destination),))
-            self.connection.execute(
-                "UPDATE jobs SET source = ?, folder = CASE WHEN ? THEN folder END"
-                " WHERE source = ?", (_stored(destination), same_folder, _stored(source)))
+            self.connection.execute("UPDATE jobs SET source = ? WHERE source = ?",
+                                    (_stored(destination), _stored(source)))
+
+    @_guarded
+    def place(self, source: Path, content: str, taken: str | None) -> None:
+        """Where a photo found up to date is now (its folder's folder_id) and when it was
+        taken, for a record of its bytes that lacks them or holds another place: records of
+        an earlier version, adopted clips and folders moved since were never set aside as
+        another card's (Job.of_another_folder), and day 1's clips were replaced."""
+        self.connection.execute(
+            "UPDATE jobs SET folder = ?, taken = COALESCE(?, taken) WHERE source = ?"
+            " AND content = ? AND (folder IS NOT ? OR taken IS NULL)",
+            (folder_id(source.parent), taken, _stored(source), content,
+             folder_id(source.parent)))
 
     @_guarded
     def set_aside(self, source: Path) -> None:
@@ -336,7 +345,7 @@ class Journal:
         job = self.get(source)
         if job is not None and job.folder is not None and job.content is not None:
             self.moved(source, source.with_name(aside_name(source.name, job.folder,
-                                                           job.content)), True)
+                                                           job.content)))
 
     @_guarded
     def job_of(self, source: Path, content: str) -> Job | None:
@@ -354,7 +363,7 @@ class Journal:
             other = Path(job.source)
             if own is None and other.name == aside_name(
                     source.name, folder_id(source.parent) or "", content):
-                self.moved(other, source, True)  # its directory is back (here, or moved)
+                self.moved(other, source)  # its directory is back (here, or moved)
                 own = self.get(source)
                 continue
             if other.name != source.name:

@@ -1211,7 +1211,9 @@ def missing_clip_lines(outbox: Path, journal: Journal) -> list[str]:
     again by the next run of their folder."""
     missing = sorted(job.output for job in journal.jobs("done")
                      if job.output and not os.path.lexists(outbox / job.output)
-                     and os.path.lexists(job.source))
+                     and os.path.lexists(job.source)
+                     # a daemon's (one of a version that wrote no note of its inbox)
+                     and Path(job.source).parent.name not in (DONE_FOLDER, FAILED_FOLDER))
     if not missing:
         return []
     more = len(missing) - MISSING_NAMED_MAX

@@ -333,6 +333,43 @@ def test_a_new_card_in_an_ingest_folder_made_again_does_not_replace_the_first_ca
     assert (out / "IMG_0001.mp4").read_bytes() != first
 
 
+def test_an_earlier_versions_record_or_an_unfinished_one_is_a_first_cards_too(tmp_path):
+    """Records of an earlier version (no folder, no moment), found up to date, were never
+    told where their photo is now, and a record whose re-make was interrupted was not
+    looked at: the next card at the path replaced their clips."""
+    import sqlite3
+
+    ingest, out = tmp_path / "ingest", tmp_path / "clips"
+    for state in ("done", "queued"):
+        shutil.rmtree(ingest, ignore_errors=True)
+        shutil.rmtree(out, ignore_errors=True)
+        camera_photo(ingest / "IMG_0001.jpg", 1, "2026:05:01 10:00:00")
+        done = subprocess.run([*CLI, str(ingest), "-o", str(out), *FAST_CLI],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        journal = sqlite3.connect(out / ".kbbatch-journal.sqlite")
+        journal.execute("UPDATE jobs SET folder = NULL, taken = NULL")  # an earlier version's
+        journal.commit()
+        if state == "done":  # found up to date, it is told where it is
+            done = subprocess.run([*CLI, str(ingest), "-o", str(out), *FAST_CLI],
+                                  capture_output=True, text=True, timeout=300)
+            assert "1 already up to date" in done.stdout, done.stdout + done.stderr
+        else:  # its re-make (--force) interrupted
+            journal.execute("UPDATE jobs SET folder = ?, taken = '2026:05:01 10:00:00',"
+                            " state = 'queued', clip = NULL",
+                            (f"{os.stat(ingest).st_dev}:{os.stat(ingest).st_ino}",))
+            journal.commit()
+        journal.close()
+        first = (out / "IMG_0001.mp4").read_bytes()
+        ingest.rename(tmp_path / f"day1-{state}")
+        camera_photo(ingest / "IMG_0001.jpg", 2, "2026:05:02 09:00:00")
+        done = subprocess.run([*CLI, str(ingest), "-o", str(out), *FAST_CLI],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert (out / "IMG_0001.mp4").read_bytes() == first, state
+        assert len(list(out.glob("IMG_0001.*.mp4"))) == 1, state
+
+
 def test_status_says_a_clip_deleted_by_hand(tmp_path):
     """`status` counted it done, from the journal alone, as if it were there."""
     folder, out = tmp_path / "photos", tmp_path / "out"
