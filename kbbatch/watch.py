@@ -1269,6 +1269,9 @@ def status_lines(outbox: Path) -> list[str]:
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]
         if waiting is None:  # a batch's folder (a daemon's clips are taken away as made)
             lines += missing_clip_lines(outbox, journal)
+        elif not waiting[0].is_dir():  # said as if no photo waited there
+            lines.append(f"NOTE the daemon's inbox {waiting[0]} is not there (renamed or "
+                         "removed?): give `kbbatch watch` its new name")
         running = journal.jobs("running")
         if running and not _folder_in_use(outbox):  # its run was killed (kill -9, power cut)
             lines += [f"INTERRUPTED {job.source} (no kbbatch is working in this folder; the "

@@ -739,6 +739,11 @@ def test_status_counts_the_photos_waiting_in_the_inbox(tmp_path):
     assert "queued 2, running 0, done 1" in status.stdout, status.stdout
     assert f"WAITING 2 photo(s) in the inbox {inbox}, taken when the daemon runs again" in \
         status.stdout, status.stdout
+    assert "NOTE" not in status.stdout
+    inbox.rename(tmp_path / "renamed")  # status said nothing of the inbox it names
+    status = subprocess.run([*CLI, "status", str(outbox)], capture_output=True, text=True)
+    assert f"NOTE the daemon's inbox {inbox} is not there (renamed or removed?)" in \
+        status.stdout, status.stdout
 
 
 def test_status_does_not_count_the_photos_the_daemons_manifest_excludes(tmp_path):
