@@ -292,22 +292,26 @@ def _renamed_to(manifest: Manifest, key: str, photos: list[Path],
     """The photo whose bytes the entry under key was planned for (`photo_sha256`): the photo
     renamed since, its crops kept under the old name. hashes: each photo's sha256, as far as
     worked out (each photo is read once however many entries are looked for)."""
+    planned_for = manifest.entries[key].data.get("photo_sha256")
+    photo = next((photo for photo in photos if planned_for
+                  and _sha256_of(photo, hashes) == planned_for), None)
+    if photo is None:
+        return ""
+    return (f"; {photo.name!r} has the bytes it was planned for (renamed?): "
+            + ("it has an entry of its own, so remove this one"
+               if photo.name in manifest.entries else "give the entry its name"))
+
+
+def _sha256_of(photo: Path, hashes: dict[Path, str | None]) -> str | None:
+    """The photo's sha256 (None where it cannot be read), worked out once into hashes."""
     from kbbatch.fingerprint import file_sha256
 
-    planned_for = manifest.entries[key].data.get("photo_sha256")
-    if not planned_for:
-        return ""
-    for photo in photos:
-        if photo not in hashes:
-            try:
-                hashes[photo] = file_sha256(photo)
-            except OSError:
-                hashes[photo] = None
-        if hashes[photo] == planned_for:
-            return (f"; {photo.name!r} has the bytes it was planned for (renamed?): "
-                    + ("it has an entry of its own, so remove this one"
-                       if photo.name in manifest.entries else "give the entry its name"))
-    return ""
+    if photo not in hashes:
+        try:
+            hashes[photo] = file_sha256(photo)
+        except OSError:
+            hashes[photo] = None
+    return hashes[photo]
 
 
 def _nearly_named(key: str, photos: list[Path]) -> str:
@@ -624,10 +628,11 @@ def run_folder(
             with contextlib.closing(executor.render(jobs(), preset, options, show_progress)
                                     ) as rendered:
                 for job, result in rendered:
-                    gone = (FOLDER_GONE if folder_identity(output_folder) != identity
-                            else PHOTOS_GONE if folder_identity(folder) != photos_identity
-                            else None)
-                    if result.status == "failed" and gone:
+                    gone = result.status == "failed" and (
+                        FOLDER_GONE if folder_identity(output_folder) != identity
+                        else PHOTOS_GONE if folder_identity(folder) != photos_identity
+                        else None)
+                    if gone:
                         # not the photo's fault (its temporary clip, or the photo itself, was
                         # no longer there), nor removed by its owner: taken again
                         result.status = "interrupted"
@@ -888,19 +893,17 @@ def renamed_photos(manifest: Manifest, photos: list[Path]) -> dict[str, str]:
     """{new name: old key} of photos renamed since they were planned: a key naming no photo
     whose `photo_sha256` is the bytes of a photo without an entry. `plan` kept such an entry
     silently, planned the photo afresh (its crops lost), and the render failed on it."""
-    from kbbatch.fingerprint import file_sha256
-
     names = {photo.name for photo in photos}
     orphans = {manifest.entries[key].data.get("photo_sha256"): key
                for key in manifest.unmatched_images(names)}
     orphans.pop(None, None)
     renamed: dict[str, str] = {}
+    hashes: dict[Path, str | None] = {}
     for photo in photos:
         if orphans and manifest.entry(photo.name, photo.parent) is None:
-            with contextlib.suppress(OSError):
-                old = orphans.pop(file_sha256(photo), None)
-                if old is not None:
-                    renamed[photo.name] = old
+            old = orphans.pop(_sha256_of(photo, hashes), None)
+            if old is not None:
+                renamed[photo.name] = old
     return renamed
 
 
