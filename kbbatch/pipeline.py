@@ -785,13 +785,19 @@ def clip_fingerprints(source: Path, content: str, preset: Preset, options: ClipO
     named for the photo cannot be read."""
     from kbbatch.fingerprint import clip_inputs
 
-    # The entry's own preset file is an input too: an edit to it makes a new clip. A bad
-    # entry is make_clip's to report (the clip fails and is not skipped).
-    with contextlib.suppress(ManifestError):
+    # The entry's own preset file is an input too, by its settings: an edit to them makes a
+    # new clip, a new name for the file does not. A bad entry is make_clip's to report (the
+    # clip fails and is not skipped), so its words stay in the digest.
+    entry_data = entry.data if entry else None
+    try:
         preset, options = apply_entry(entry, preset, options)
+        if entry_data is not None:
+            entry_data = {k: v for k, v in entry_data.items() if k != "preset"}
+    except ManifestError:
+        pass
 
     def settings(save_depth: bool) -> tuple:
-        return asdict(preset), options.planner, entry.data if entry else None, save_depth
+        return preset.frame_settings(), options.planner, entry_data, save_depth
 
     inputs = clip_inputs(source, content, options.depth, settings(options.save_depth))
     # With --save-depth the maps are outputs too: asking for them makes the clip again. A clip

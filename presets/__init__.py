@@ -56,6 +56,17 @@ class Preset:
     def aspect(self) -> float:
         return self.width_px / self.height_px
 
+    def frame_settings(self) -> dict[str, Any]:
+        """The settings a clip's frames and encoding are made from: all but the preset's
+        name and description, which label it. Renaming a preset file or rewording its
+        description made every clip of a folder again."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if f.name not in LABEL_FIELDS}
+
+
+LABEL_FIELDS = ("name", "description")
+"""A preset's words about itself, not settings of its clips."""
+
 
 @functools.cache
 def schema() -> dict[str, Any]:

@@ -34,7 +34,7 @@ from kbbatch.images import (
 )
 from kbbatch.journal import FolderBusyError, FolderLock, Journal
 from kbbatch.pipeline import ClipOptions, make_clip
-from kbbatch.presets import with_overrides
+from kbbatch.presets import load_preset, with_overrides
 
 from .conftest import textured_image
 from .test_watch import wait_for
@@ -518,6 +518,39 @@ def test_a_manifest_entrys_preset_file_is_found_beside_the_manifest_and_is_an_in
     capture = cv2.VideoCapture(str(tmp_path / "out" / "a.mp4"))
     assert capture.get(cv2.CAP_PROP_FRAME_WIDTH) == 384
     capture.release()
+
+
+def test_a_preset_renamed_or_reworded_makes_no_clip_again(tmp_path, quick_preset):
+    """A preset's name and description label it: renaming its file (and the manifest entry
+    naming it) or rewording its description made every clip of the folder again."""
+    from kbbatch.manifest import load_manifest
+
+    photo(tmp_path / "in" / "a.jpg", seed=1)
+    photo(tmp_path / "in" / "b.jpg", seed=2)
+    settings = 'base = "preview"\nwidth_px = 320\nheight_px = 180\nfps = 10\nduration_s = 0.5\n'
+    mine = tmp_path / "mine.toml"
+    mine.write_text(f'description = "first words"\n{settings}')
+    (tmp_path / "look.toml").write_text(settings)
+    manifest_path = tmp_path / "manifest.json"
+
+    def render(preset_file: Path, entry_preset: str) -> list[str]:
+        manifest_path.write_text(json.dumps(
+            {"version": 1, "images": {"b.jpg": {"preset": entry_preset}}}))
+        report = run_folder(tmp_path / "in", tmp_path / "out", load_preset(str(preset_file)),
+                            FAST, False, manifest=load_manifest(manifest_path))
+        return [r.status for r in report.results]
+
+    assert render(mine, "look.toml") == ["done", "done"]
+    renamed = mine.rename(tmp_path / "ours.toml")
+    renamed.write_text(f'description = "better words"\n{settings}')
+    (tmp_path / "look.toml").rename(tmp_path / "grade.toml")
+    assert render(renamed, "grade.toml") == ["skipped", "skipped"]
+    # A setting is not a label: the clips are made again.
+    renamed.write_text(f'description = "better words"\n{settings}crf = 30\n')
+    assert render(renamed, "grade.toml") == ["done", "skipped"]
+    # An entry naming a preset file that is gone fails: it is not taken for up to date.
+    (tmp_path / "grade.toml").unlink()
+    assert render(renamed, "grade.toml") == ["skipped", "failed"]
 
 
 def test_an_edited_photo_replaces_its_own_clip(tmp_path, quick_preset):

@@ -322,8 +322,8 @@ class ReviewSession:
         """The automatic plan for a photo under an entry's preset, planner and depth (cached)."""
         state = self._photo(name)
         preset, options = self._settings(name, data)
-        key = _digest({"inputs": self._inputs(state.path, options), "preset": asdict(preset),
-                       "planner": options.planner})
+        key = _digest({"inputs": self._inputs(state.path, options),
+                       "preset": preset.frame_settings(), "planner": options.planner})
         path = self.cache_dir / "plans" / f"{key}.json"
         with self._key_lock(key):
             try:
@@ -488,7 +488,8 @@ class ReviewSession:
             raise RequestError(400, str(error)) from error
         # The preview preset already carries the entry's preset and duration.
         clip_data = {k: v for k, v in data.items() if k not in ("preset", "duration_s")}
-        key = _digest({"inputs": self._inputs(state.path, options), "preset": asdict(preset),
+        key = _digest({"inputs": self._inputs(state.path, options),
+                       "preset": preset.frame_settings(),
                        "options": asdict(replace(options, threads=1)), "entry": clip_data})
         path = self.preview_path(key)
         with self._key_lock(key):
