@@ -40,6 +40,7 @@ from kbbatch.outputs import (
     check_writable,
     clip_name_note,
     folder_identity,
+    moved_to,
     output_names,
     remove_partial_clips,
     replaced_clip_note,
@@ -669,10 +670,19 @@ def run_folder(
                                results, notes, stop.get("by"), options.device, providers_used(),
                                started_at, utc_now(), not_started, journal_id=journal_id)
             if folder_identity(output_folder) != identity:  # not made again: the user's doing
+                now = moved_to(lock.descriptor)  # the report goes with the clips made
+                where = "where the folder went"
+                if now is not None:
+                    report.output_folder = str(now)
+                    for result in report.results:
+                        if result.output and Path(result.output).parent == output_folder:
+                            result.output = str(now / Path(result.output).name)
+                    report.notes.append(f"{output_folder} was moved to {now} during the run")
+                    if report.write(now) is None:
+                        where = f"in {now}, with this run's report"
                 lock.release()
                 raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
-                                        "stopped there (the clips made before are where the "
-                                        "folder went)")
+                                        f"stopped there (the clips made before are {where})")
             report.unwritten = report.write(output_folder)
             written = report_path(output_folder)
             if report.unwritten and written is not None and written.exists():

@@ -50,6 +50,17 @@ def folder_identity(folder: Path) -> tuple[int, int] | None:
     return stat.st_dev, stat.st_ino
 
 
+def moved_to(folder_fd: int) -> Path | None:
+    """Where a folder held open as folder_fd is now, so that a run whose output folder was
+    moved can still leave its report beside its clips; None where it was removed, or where
+    the system cannot say (Linux's /proc tells)."""
+    try:
+        path = Path(os.readlink(f"/proc/self/fd/{folder_fd}"))
+        return path if os.path.samestat(os.stat(path), os.fstat(folder_fd)) else None
+    except OSError:
+        return None
+
+
 def check_writable(folder: Path) -> None:
     """Fail early, with the reason, when clips could never be written to a folder."""
     try:

@@ -1608,6 +1608,14 @@ def test_an_output_folder_renamed_mid_run_does_not_fail_the_photo_in_flight(tmp_
     status = subprocess.run([*CLI, "status", str(moved)], capture_output=True, text=True)
     assert "failed 0" in status.stdout and "FileNotFoundError" not in status.stdout, \
         status.stdout
+    # The run's report went with its clips: it said the run was started, never how it ended.
+    assert f"are in {moved}, with this run's report" in stderr, stderr
+    report = json.loads((moved / "kbbatch-report.json").read_text())
+    assert report["stopped_by"] == batch.FOLDER_GONE and report["finished_at"]
+    assert report["output_folder"] == str(moved)
+    assert f"{out} was moved to {moved} during the run" in report["notes"]
+    assert report["not_started"], report  # the photos after the one in flight
+    assert "stopped by the output folder removed or renamed" in status.stdout, status.stdout
 
 
 def linked_folder(tmp_path: Path) -> tuple[Path, Path, Path]:
