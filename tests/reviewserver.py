@@ -35,11 +35,14 @@ class Served:
     address: str = "127.0.0.1"
 
     def request(self, method: str, path: str, body: bytes | None = None,
-                headers: dict[str, str] | None = None) -> Reply:
-        """Send the path exactly as given (no client-side normalisation of '..' or '%2f')."""
+                headers: dict[str, str | None] | None = None) -> Reply:
+        """Send the path exactly as given (no client-side normalisation of '..' or '%2f'),
+        with the session's token in its header unless headers name it (None: none sent)."""
+        headers = {TOKEN_HEADER: self.session.token} | (headers or {})
+        headers = {k: v for k, v in headers.items() if v is not None}
         connection = http.client.HTTPConnection(self.address, self.port, timeout=120)
         try:
-            connection.request(method, path, body=body, headers=headers or {})
+            connection.request(method, path, body=body, headers=headers)
             response = connection.getresponse()
             return Reply(response.status, {k.lower(): v for k, v in response.getheaders()},
                          response.read())
@@ -50,9 +53,8 @@ class Served:
         return self.request("GET", path, headers=headers)
 
     def post(self, path: str, data: Any, token: str | None = "session") -> Reply:
-        headers = {"Content-Type": "application/json"}
-        if token is not None:
-            headers[TOKEN_HEADER] = self.session.token if token == "session" else token
+        headers = {"Content-Type": "application/json",
+                   TOKEN_HEADER: self.session.token if token == "session" else token}
         return self.request("POST", path, json.dumps(data).encode(), headers)
 
     def wait_planned(self, timeout_s: float = 120) -> dict[str, Any]:

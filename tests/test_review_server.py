@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -89,6 +90,32 @@ def test_photos_come_with_plans_computed_in_the_background(served):
             assert c["center_y"] + c["height"] / 2 <= height + 0.5
         assert photo["plan"]["end"]["width"] < photo["plan"]["start"]["width"]  # zoom in
     assert overview["command"].startswith("kbbatch ") and "--manifest" in overview["command"]
+
+
+def test_nothing_is_served_without_the_sessions_token(served):
+    """Every user of the machine reaches 127.0.0.1: another user read the photos of a
+    private folder and took the token from the page, then saved into its manifest."""
+    no_token = {TOKEN_HEADER: None}
+    for path in ("/", "/api/photos", "/api/photos/tall.png/image", "/api/photos/tall.png/depth",
+                 "/static/app.js"):
+        for method in ("GET", "HEAD"):
+            reply = served.request(method, path, headers=no_token)
+            assert reply.status == 403, (method, path, reply.status)
+            assert served.session.token.encode() not in reply.body
+    assert served.request("GET", "/?token=wrong", headers=no_token).status == 403
+    # The printed address: its token set as the port's cookie, then out of the address bar.
+    assert served.url.endswith(f"/?token={served.session.token}")
+    opened = served.request("GET", served.url[served.url.index("/?"):], headers=no_token)
+    assert opened.status == 303 and opened.headers["location"] == "/"
+    cookie = opened.headers["set-cookie"]
+    assert cookie.startswith(f"kbbatch-review-{served.port}={served.session.token};")
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    with_cookie = {TOKEN_HEADER: None,
+                   "Cookie": f"kbbatch-review-{served.port}={served.session.token}"}
+    assert served.request("GET", "/api/photos/tall.png/image", headers=with_cookie
+                          ).status == 200
+    other_port = {TOKEN_HEADER: None, "Cookie": f"kbbatch-review-1={served.session.token}"}
+    assert served.request("GET", "/api/photos", headers=other_port).status == 403
 
 
 def test_page_and_its_files_are_served_with_the_token(served):
@@ -379,8 +406,13 @@ def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
                                text=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
     try:
         first_line = process.stdout.readline()
-        url = re.search(r"http://127\.0\.0\.1:\d+/", first_line).group(0)
-        with urllib.request.urlopen(url + "api/photos", timeout=60) as response:
+        found = re.search(r"(http://127\.0\.0\.1:\d+/)\?token=([\w-]+)", first_line)
+        url, token = found.group(1), found.group(2)
+        with pytest.raises(urllib.error.HTTPError) as refused:  # not without the token
+            urllib.request.urlopen(url + "api/photos", timeout=60)
+        assert refused.value.code == 403
+        asked = urllib.request.Request(url + "api/photos", headers={TOKEN_HEADER: token})
+        with urllib.request.urlopen(asked, timeout=60) as response:
             names = {p["name"] for p in json.load(response)["photos"]}
         assert names == set(SIZES)
         process.send_signal(signal.SIGINT)
@@ -488,7 +520,7 @@ def test_an_ipv6_loopback_host_keeps_the_rebinding_guard_and_a_valid_url(folder,
     except OSError as error:
         pytest.skip(f"no IPv6 loopback here: {error}")
     with running_server(folder, manifest, preset, OPTIONS, host="::1") as served:
-        assert served.url == f"http://[::1]:{served.port}/"
+        assert served.url == f"http://[::1]:{served.port}/?token={served.session.token}"
         foreign = served.request("GET", "/api/photos", headers={"Host": "attacker.test"})
         assert foreign.status == 403, foreign.body
         saved = served.request("POST", "/api/save", b'{"entries": {}}', headers={

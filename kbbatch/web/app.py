@@ -4,7 +4,9 @@ The session plans the folder's photos in one background thread (cached on disk p
 preset and manifest entry), renders short low-resolution preview clips on demand through the
 same `make_clip` as a batch (cached per plan), and writes the manifest atomically after
 validating it. It serves only the folder's own photos, the page's files and the previews it
-rendered; every POST needs the session's token, and every request must name a local host.
+rendered. Every request needs the session's token (the address it prints carries it once,
+then a cookie does; a POST also in a header), and must name a local host: the loopback
+address is open to every user of the machine.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-from flask import Flask, Response, jsonify, request, send_file
+from flask import Flask, Response, jsonify, redirect, request, send_file
 from werkzeug.exceptions import HTTPException
 from werkzeug.serving import make_server
 
@@ -71,6 +73,14 @@ from kbbatch.review import depth_picture
 
 STATIC_FOLDER = Path(__file__).parent / "static"
 TOKEN_HEADER = "X-KBBatch-Token"
+TOKEN_PARAMETER = "token"
+"""The query parameter of the address a session prints, which sets its cookie."""
+
+
+def token_cookie(port: str) -> str:
+    """The session's cookie, named for its port: a browser sends a host's cookies to every
+    port, and two sessions side by side must not take each other's."""
+    return f"kbbatch-review-{port}"
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "[::1]")
 
 PREVIEW_LONG_SIDE_PX = 480
@@ -609,14 +619,30 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
     app.json.sort_keys = False
     app.url_map.merge_slashes = False  # '//' is refused, not redirected
 
+    def is_token(sent: str | None) -> bool:
+        return bool(sent) and secrets.compare_digest(sent.encode(), session.token.encode())
+
     @app.before_request
-    def guard() -> None:
+    def guard() -> Response | None:
         if allowed_hosts and _host_name(request.host) not in allowed_hosts:
             raise RequestError(403, f"host {request.host!r} is not served (DNS rebinding?)")
-        if request.method not in ("GET", "HEAD", "OPTIONS"):
-            sent = request.headers.get(TOKEN_HEADER, "")
-            if not secrets.compare_digest(sent.encode(), session.token.encode()):
+        if request.method == "OPTIONS":
+            return None
+        if request.method not in ("GET", "HEAD"):  # a page elsewhere cannot set the header
+            if not is_token(request.headers.get(TOKEN_HEADER)):
                 raise RequestError(403, f"missing or wrong {TOKEN_HEADER} header")
+            return None
+        # Every user of the machine reaches the loopback address: without the token, another
+        # user read the photos of a private folder and took the token from the page.
+        cookie = token_cookie(request.environ.get("SERVER_PORT", ""))
+        if is_token(request.headers.get(TOKEN_HEADER)) or is_token(request.cookies.get(cookie)):
+            return None
+        if request.path == "/" and is_token(request.args.get(TOKEN_PARAMETER)):
+            response = redirect("/", 303)  # the token leaves the address bar and history
+            response.set_cookie(cookie, session.token, httponly=True, samesite="Strict")
+            return response
+        raise RequestError(403, "this review session's key is missing: open the address "
+                           f"`kbbatch review` printed (it ends in ?{TOKEN_PARAMETER}=...)")
 
     @app.errorhandler(RequestError)
     def refused(error: RequestError) -> tuple[Response, int]:
@@ -716,10 +742,10 @@ class ReviewServer:
         self.server = make_server(bare, port, create_app(session, hosts), threaded=True)
         self.port = self.server.server_port
         shown = {"0.0.0.0": "127.0.0.1", "::": "[::1]"}.get(bare, in_url)
-        self.url = f"http://{shown}:{self.port}/"
+        self.url = f"http://{shown}:{self.port}/?{TOKEN_PARAMETER}={session.token}"
         if hosts is None:
-            log.warning("serving on %s:%d: the page, the photos and the token that lets a page "
-                        "edit the manifest are open to every machine that reaches it",
+            log.warning("serving on %s:%d in plain HTTP: whoever sees the address with its "
+                        "token, or the traffic, can read the photos and edit the manifest",
                         in_url, self.port)
 
     def serve(self, ready: Callable[[str], None] | None = None) -> None:
