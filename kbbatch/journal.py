@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pwd
 import re
 import sqlite3
+import stat
 import time
 import uuid
 from collections.abc import Iterator
@@ -159,10 +161,10 @@ def folder_id(folder: Path) -> str | None:
     path (an ingest folder renamed aside and a new card copied into a new one) is another,
     and its photos are not edits of the first one's."""
     try:
-        stat = os.stat(folder)
+        facts = os.stat(folder)
     except OSError:
         return None
-    return f"{stat.st_dev}:{stat.st_ino}"
+    return f"{facts.st_dev}:{facts.st_ino}"
 
 
 def source_fingerprint(path: Path) -> str:
@@ -214,6 +216,37 @@ def _guarded(method):
     return wrapper
 
 
+def _side_files(path: Path) -> tuple[Path, Path]:
+    """SQLite's write-ahead log and shared memory beside a journal in WAL mode."""
+    return path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")
+
+
+def _unwritable(path: Path) -> str | None:
+    """Why this user cannot write the journal or its side files, if so. SQLite opened such a
+    journal read-only and every clip failed "attempt to write a readonly database"
+    (up-to-date ones too, and the run's report said so), and it left side files of this
+    user's, which its own owner could then not write either."""
+    for file in (path, *_side_files(path)):
+        if not os.path.lexists(file) or os.access(file, os.W_OK):
+            continue
+        try:
+            facts = file.stat()
+        except OSError:
+            continue
+        return (f"{file.name} belongs to {_user_name(facts.st_uid)}, mode "
+                f"{stat.S_IMODE(facts.st_mode):o}, and this is {_user_name(os.getuid())}: "
+                "run kbbatch on a folder as the user who owns its journal, or make the "
+                "folder's files group-writable for users who share it (umask 002)")
+    return None
+
+
+def _user_name(uid: int) -> str:
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return f"user {uid}"
+
+
 class Journal:
     @_guarded
     def __init__(self, folder: Path, read_only: bool = False) -> None:
@@ -225,6 +258,11 @@ class Journal:
             self._present = self._columns()
             return
         folder.mkdir(parents=True, exist_ok=True)
+        refusal = _unwritable(self.path)
+        if refusal:  # before SQLite leaves files of this user's beside it: see _unwritable
+            raise JournalError(f"{self.path}: job journal cannot be written ({refusal})")
+        with contextlib.suppress(FileExistsError):  # made as the clips are: the umask's mode
+            os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
         self.connection = sqlite3.connect(self.path, timeout=30, isolation_level=None)
         self.connection.execute("PRAGMA journal_mode=WAL")
         self.connection.execute("PRAGMA synchronous=FULL")
@@ -249,6 +287,12 @@ class Journal:
 
     def _read_only_connection(self) -> sqlite3.Connection:
         uri = self.path.absolute().as_uri()
+        if not any(os.path.lexists(f) for f in _side_files(self.path)):
+            # Nothing writes it now, so the file is the whole journal: looked at as immutable,
+            # SQLite makes no side files, which another user's `kbbatch status` left, owned by
+            # them, so that the journal's own owner could no longer write it.
+            return sqlite3.connect(f"{uri}?mode=ro&immutable=1", uri=True, timeout=30,
+                                   isolation_level=None)
         connection = sqlite3.connect(f"{uri}?mode=ro", uri=True, timeout=30,
                                      isolation_level=None)
         try:

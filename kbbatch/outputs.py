@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 from collections import Counter
@@ -9,6 +10,8 @@ from pathlib import Path
 
 from kbbatch.images import fitted_name
 from kbbatch.pipeline import CLIP_SUFFIX
+
+log = logging.getLogger(__name__)
 
 
 def output_names(sources: list[Path]) -> dict[Path, str]:
@@ -80,7 +83,12 @@ def remove_partial_clips(folder: Path) -> list[Path]:
     removed = []
     for partial in folder.glob(".*.part.*"):
         if TEMP_NAME.match(partial.name) and not partial.is_dir():
-            partial.unlink(missing_ok=True)
+            try:
+                partial.unlink(missing_ok=True)
+            except OSError as error:  # another user's, in a sticky folder: a traceback before
+                log.warning("%s: a partial clip left by an interrupted run; kept, since it "
+                            "cannot be removed (%s)", partial, error.strerror or error)
+                continue
             removed.append(partial)
     return removed
 

@@ -1,0 +1,119 @@
+"""Folders shared by several users of one machine: the journal's modes and side files.
+
+The tests act as another user in a forked child (root only: the suite runs as root on the
+development machines and in CI); the child runs kbbatch's own code, already imported, so it
+needs no access to the interpreter's files.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from kbbatch.journal import JOURNAL_NAME, Journal, JournalError
+
+OTHER_UID = OTHER_GID = 65534
+"""`nobody`: a user who owns nothing here."""
+
+pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="acting as another user needs root")
+
+
+@pytest.fixture
+def shared() -> Iterator[Path]:
+    """A folder every user may write (pytest's own are root's, mode 700)."""
+    folder = Path(tempfile.mkdtemp(prefix="kbbatch-shared-"))
+    folder.chmod(0o777)
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def as_other_user(action: Callable[[], str]) -> str:
+    """action's result (or its error's words) in a child process of OTHER_UID."""
+    read_end, write_end = os.pipe()
+    child = os.fork()
+    if child == 0:  # pragma: no cover - the child's own process
+        os.close(read_end)
+        try:
+            os.setgroups([])
+            os.setgid(OTHER_GID)
+            os.setuid(OTHER_UID)
+            words = action()
+        except BaseException as error:  # noqa: BLE001 - reported to the parent
+            words = f"{type(error).__name__}: {error}"
+        os.write(write_end, words.encode())
+        os._exit(0)
+    os.close(write_end)
+    with os.fdopen(read_end, "rb") as reader:
+        words = reader.read().decode()
+    os.waitpid(child, 0)
+    return words
+
+
+def side_files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name != JOURNAL_NAME)
+
+
+def test_a_journal_is_made_with_the_umasks_mode(shared):
+    """SQLite made it 644 whatever the umask: in a group folder (umask 002) the clips were
+    group-writable and the journal was not, so the next member's every clip failed."""
+    previous = os.umask(0o002)
+    try:
+        Journal(shared / "out").close()
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE((shared / "out" / JOURNAL_NAME).stat().st_mode) == 0o664
+
+
+def test_a_journal_another_user_cannot_write_is_refused_at_once_leaving_nothing(shared):
+    """It opened read-only: every clip of the run failed "attempt to write a readonly
+    database" (up-to-date ones too), and it left side files of its own beside the journal,
+    which then stopped the journal's owner too."""
+    Journal(shared).close()  # root's, mode 644
+    words = as_other_user(lambda: str(Journal(shared)))
+    assert words.startswith(JournalError.__name__), words
+    assert f"{JOURNAL_NAME} belongs to root, mode 644, and this is nobody" in words, words
+    assert side_files(shared) == []
+    Journal(shared).close()  # its owner writes it as before
+
+
+def test_looking_at_another_users_journal_leaves_no_files_behind(shared):
+    """`kbbatch status` by a colleague left -wal and -shm files of theirs (mode 644), and the
+    journal's owner could write it no more."""
+    journal = Journal(shared)
+    journal.start(shared / "a.jpg", "f", "s", "a.mp4", "c")
+    journal.close()
+
+    def look() -> str:
+        other = Journal(shared, read_only=True)
+        try:
+            return str(other.counts())
+        finally:
+            other.close()
+
+    assert "'running': 1" in as_other_user(look)
+    assert side_files(shared) == []
+    journal = Journal(shared)
+    journal.finish(shared / "a.jpg", "done", 1.0)
+    assert journal.counts()["done"] == 1
+    journal.close()
+
+
+def test_another_users_partial_clip_in_a_sticky_folder_is_kept_without_a_crash(shared):
+    """A sticky output folder (mode 1777) with a partial clip another user's killed run left:
+    every later run crashed at its start with a PermissionError traceback."""
+    from kbbatch.outputs import remove_partial_clips
+
+    shared.chmod(0o1777)
+    partial = shared / ".a.k3j9x2qa.part.mp4"
+    partial.write_bytes(b"half a clip")
+    assert as_other_user(lambda: repr(remove_partial_clips(shared))) == "[]"
+    assert partial.exists()
+    assert remove_partial_clips(shared) == [partial]  # its owner's run removes it
