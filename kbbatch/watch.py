@@ -214,7 +214,14 @@ def move_photo(path: Path, destination: Path) -> None:
     the same file (moved as it was, `../photos/x.jpg` led nowhere from done/)."""
     target = os.readlink(path) if path.is_symlink() else None
     if target is None or os.path.isabs(target):
-        shutil.move(str(path), destination)
+        try:
+            os.rename(path, destination)
+        except OSError as error:
+            # Copied only across file systems: another user's photo in a sticky inbox was
+            # copied into done/ and could not be removed, a copy more at every start.
+            if error.errno != errno.EXDEV:
+                raise
+            shutil.move(str(path), destination)
         return
     # The target as written, after the way back from the new folder: tidied as text,
     # `dirlink/../x.jpg` would mean another file.

@@ -117,3 +117,19 @@ def test_another_users_partial_clip_in_a_sticky_folder_is_kept_without_a_crash(s
     assert as_other_user(lambda: repr(remove_partial_clips(shared))) == "[]"
     assert partial.exists()
     assert remove_partial_clips(shared) == [partial]  # its owner's run removes it
+
+
+def test_another_users_photo_in_a_sticky_inbox_is_not_copied_into_done(shared):
+    """The daemon's move fell back to a copy where the rename was refused: every start left
+    one more copy of the photo in done/ (`x.jpg`, `x.1.jpg`, ...) and the photo in the inbox."""
+    from kbbatch.watch import move_photo
+
+    shared.chmod(0o1777)
+    photo = shared / "bob.jpg"
+    photo.write_bytes(b"a photo")
+    done = shared / "done"
+    done.mkdir(mode=0o777)
+    done.chmod(0o777)
+    words = as_other_user(lambda: repr(move_photo(photo, done / "bob.jpg")))
+    assert words.startswith("PermissionError"), words
+    assert photo.read_bytes() == b"a photo" and list(done.iterdir()) == []
