@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
+import shutil
 import stat
 import tempfile
 from pathlib import Path
 
 
 def _writable(folder: Path) -> bool:
-    """Whether files can be made in folder, or in the folder that would hold it."""
-    return os.access(folder if folder.exists() else folder.parent, os.W_OK)
+    """Whether files can be made in folder, or in the folders that would be made for it (a
+    new user's home has no ~/.cache yet: the first run compiled into the temporary folder,
+    the second into ~/.cache/numba, each from scratch)."""
+    while not folder.exists() and folder.parent != folder:
+        folder = folder.parent
+    return os.access(folder, os.W_OK)
 
 
 def _compiled_code_cache() -> None:
@@ -31,17 +38,27 @@ def _compiled_code_cache() -> None:
         home_cache = None
     if home_cache is not None and _writable(home_cache / "numba"):
         return
-    private = Path(tempfile.gettempdir()) / f"kbbatch-numba-{os.getuid()}"
-    try:
-        private.mkdir(mode=0o700, exist_ok=True)
-        status = private.lstat()
-    except OSError:
-        return  # numba then says why it cannot cache
-    if (stat.S_ISDIR(status.st_mode) and status.st_uid == os.getuid()
-            and not status.st_mode & (stat.S_IWGRP | stat.S_IWOTH)):
-        os.environ["NUMBA_CACHE_DIR"] = str(private)
-    else:
-        os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="kbbatch-numba-")
+    # A name taken by another user (a stale uid's, or a squatter's) gets the next one: a new
+    # folder every run compiled every kernel again and was left behind, 0.7 MB a run.
+    for number in range(PRIVATE_CACHE_NAMES):
+        private = Path(tempfile.gettempdir()) / (f"kbbatch-numba-{os.getuid()}"
+                                                 + (f".{number}" if number else ""))
+        try:
+            private.mkdir(mode=0o700, exist_ok=True)
+            status = private.lstat()
+        except OSError:
+            continue
+        if (stat.S_ISDIR(status.st_mode) and status.st_uid == os.getuid()
+                and not status.st_mode & (stat.S_IWGRP | stat.S_IWOTH)):
+            os.environ["NUMBA_CACHE_DIR"] = str(private)
+            return
+    with contextlib.suppress(OSError):  # else numba says why it cannot cache
+        os.environ["NUMBA_CACHE_DIR"] = fresh = tempfile.mkdtemp(prefix="kbbatch-numba-")
+        atexit.register(shutil.rmtree, fresh, ignore_errors=True)
+
+
+PRIVATE_CACHE_NAMES = 4
+"""Names tried for a user's compiled-code folder in the temporary folder."""
 
 
 _compiled_code_cache()

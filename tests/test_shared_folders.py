@@ -133,3 +133,32 @@ def test_another_users_photo_in_a_sticky_inbox_is_not_copied_into_done(shared):
     words = as_other_user(lambda: repr(move_photo(photo, done / "bob.jpg")))
     assert words.startswith("PermissionError"), words
     assert photo.read_bytes() == b"a photo" and list(done.iterdir()) == []
+
+
+def test_a_new_users_compiled_code_goes_where_it_will_stay(shared):
+    """A new home has no ~/.cache yet: it was taken for unwritable, so the first run compiled
+    every kernel into the temporary folder and the second, into ~/.cache/numba, again."""
+    import kbbatch
+
+    assert kbbatch._writable(shared / "home" / ".cache" / "numba")
+
+
+def test_a_compiled_code_folder_name_taken_by_another_user_gets_the_next_one(shared):
+    """A service account with no writable home found its folder's name taken (another
+    user's, or a stale uid's): every run compiled again into a new folder, left behind."""
+    import kbbatch
+
+    squatted = shared / f"kbbatch-numba-{OTHER_UID}"
+    squatted.mkdir(mode=0o700)
+
+    def choose() -> str:
+        os.environ.pop("NUMBA_CACHE_DIR", None)
+        os.environ.update(HOME="/nonexistent", TMPDIR=str(shared), XDG_CACHE_HOME="/nonexistent")
+        tempfile.tempdir = None
+        kbbatch._compiled_code_cache()
+        return os.environ.get("NUMBA_CACHE_DIR", "")
+
+    chosen = as_other_user(choose)
+    assert chosen == str(shared / f"kbbatch-numba-{OTHER_UID}.1"), chosen
+    assert as_other_user(choose) == chosen  # the next run's too
+    assert sorted(p.name for p in shared.iterdir()) == [squatted.name, Path(chosen).name]
