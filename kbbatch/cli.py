@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import os
@@ -433,8 +434,16 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
     if not session.photos:  # a page of nothing to review: said as the batch says it
         click.echo(f"Error: {empty_folder_error(folder, scan_folder(folder))}", err=True)
         sys.exit(EXIT_NOTHING_TO_DO)
+    chosen = click.get_current_context().get_parameter_source("port") != ParameterSource.DEFAULT
     try:
-        server = ReviewServer(session, host, port)
+        try:
+            server = ReviewServer(session, host, port)
+        except OSError as error:  # a second review (another user's) on the default port
+            if chosen or error.errno != errno.EADDRINUSE:
+                raise
+            server = ReviewServer(session, host, 0)
+            click.echo(f"NOTE port {port} is in use (another review?); this one is on "
+                       f"{server.port}", err=True)
     except OSError as error:
         raise click.ClickException(f"cannot listen on {host}:{port} ({error.strerror or error});"
                                    " choose another --host or --port") from error

@@ -399,6 +399,38 @@ def test_a_folder_with_no_photos_is_said_not_served_as_an_empty_page(tmp_path):
     assert "kbbatch review:" not in run.stdout and list(empty.iterdir()) == []
 
 
+def test_a_second_review_on_the_default_port_takes_another(folder, tmp_path):
+    """Two users' reviews on one machine: the second got werkzeug's own words and exit 1.
+    A port asked for with --port is still refused when in use."""
+    import socket
+
+    try:
+        taken = socket.create_server(("127.0.0.1", 8765))
+    except OSError:
+        pytest.skip("port 8765 is in use here already")
+    command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
+               str(tmp_path / "cli.json"), "--depth", "ramp"]
+    with taken:
+        asked = subprocess.run([*command, "--port", "8765"], capture_output=True, text=True,
+                               timeout=120)
+        assert asked.returncode == 1, asked.stderr
+        assert "cannot listen on 127.0.0.1:8765" in asked.stderr, asked.stderr
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                   text=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
+        try:
+            first_line = process.stdout.readline()
+            port = int(re.search(r"http://127\.0\.0\.1:(\d+)/", first_line).group(1))
+            assert port != 8765
+            process.send_signal(signal.SIGINT)
+            assert process.wait(timeout=30) == 0
+            assert f"NOTE port 8765 is in use (another review?); this one is on {port}" \
+                in process.stderr.read()
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+
+
 def test_the_cli_serves_the_folder_until_interrupted(folder, tmp_path):
     command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
                str(tmp_path / "cli.json"), "--port", "0", "--depth", "ramp"]

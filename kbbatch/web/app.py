@@ -739,8 +739,14 @@ class ReviewServer:
         except socket.gaierror as error:
             raise OSError(f"{host} is no address of this machine ({error.strerror})") from error
         self.session = session
-        self.server = make_server(bare, port, create_app(session, hosts), threaded=True)
-        self.port = self.server.server_port
+        # Bound here, so that a port in use is an OSError to act on: werkzeug prints its own
+        # words and exits the process.
+        family = socket.AF_INET6 if ":" in bare else socket.AF_INET
+        with socket.create_server((bare, port), family=family) as listener:
+            self.server = make_server(bare, listener.getsockname()[1],
+                                      create_app(session, hosts), threaded=True,
+                                      fd=listener.fileno())
+        self.port = self.server.server_address[1]
         shown = {"0.0.0.0": "127.0.0.1", "::": "[::1]"}.get(bare, in_url)
         self.url = f"http://{shown}:{self.port}/?{TOKEN_PARAMETER}={session.token}"
         if hosts is None:
