@@ -162,3 +162,29 @@ def test_a_compiled_code_folder_name_taken_by_another_user_gets_the_next_one(sha
     assert chosen == str(shared / f"kbbatch-numba-{OTHER_UID}.1"), chosen
     assert as_other_user(choose) == chosen  # the next run's too
     assert sorted(p.name for p in shared.iterdir()) == [squatted.name, Path(chosen).name]
+
+
+def test_a_manifest_lock_holds_across_users_and_leaves_no_file(shared, monkeypatch):
+    """Each user's lock file was 0600, so another user's review never waited for a save in
+    progress (and said so); and the files were never removed: hundreds piled up in /tmp."""
+    from kbbatch.web import app
+    from kbbatch.web.app import RequestError, manifest_lock
+
+    monkeypatch.setattr(tempfile, "tempdir", str(shared))
+    monkeypatch.setattr(app, "MANIFEST_LOCK_WAIT_S", 0.3)
+    manifest = shared / "manifest.json"
+
+    def try_to_save() -> str:
+        try:
+            with manifest_lock(manifest):
+                return "saved"
+        except RequestError as error:
+            return f"refused: {error.message}"
+
+    with manifest_lock(manifest):
+        assert len(list(shared.glob("kbbatch-manifest-*.lock"))) == 1
+        assert as_other_user(try_to_save) == \
+            f"refused: {manifest}: another review is saving it; try again"
+    assert list(shared.glob("kbbatch-manifest-*.lock")) == []
+    assert as_other_user(try_to_save) == "saved"
+    assert list(shared.glob("kbbatch-manifest-*.lock")) == []

@@ -22,6 +22,7 @@ import shlex
 import socket
 import tempfile
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -543,22 +544,35 @@ def manifest_lock(manifest: Path):
     """An exclusive lock on one manifest across processes: two reviews of one folder each
     read, changed and wrote the whole file, and one's save silently undid the other's. The
     lock is a file in the temporary folder named by the manifest's real path (the manifest
-    itself is replaced by each save, and need not exist yet), so nothing is left beside it."""
+    itself is replaced by each save, and need not exist yet), so nothing is left beside it;
+    opened for reading, another user's lock file locks too, and it is removed after each save
+    (they were never removed: hundreds piled up in /tmp)."""
     from kbbatch.journal import locked_within
 
     key = hashlib.sha256(os.fsencode(os.path.realpath(manifest))).hexdigest()[:24]
     path = Path(tempfile.gettempdir()) / f"kbbatch-manifest-{key}.lock"
-    try:
-        descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-    except OSError as error:  # another user's lock file: this server's own lock still holds
-        log.warning("%s: no lock against other reviews (%s)", path, error.strerror or error)
-        yield
-        return
-    try:
-        if not locked_within(descriptor, MANIFEST_LOCK_WAIT_S):
+    deadline = time.monotonic() + MANIFEST_LOCK_WAIT_S
+    while True:
+        try:
+            descriptor = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)
+        except OSError as error:  # this server's own lock still holds
+            log.warning("%s: no lock against other reviews (%s)", path, error.strerror or error)
+            yield
+            return
+        if not locked_within(descriptor, max(0.0, deadline - time.monotonic())):
+            os.close(descriptor)
             raise RequestError(409, f"{manifest}: another review is saving it; try again")
+        try:
+            if os.path.samestat(os.fstat(descriptor), os.stat(path)):
+                break
+        except OSError:
+            pass
+        os.close(descriptor)  # removed by the save before, as this one waited: take it anew
+    try:
         yield
     finally:
+        with contextlib.suppress(OSError):  # another user's, in a sticky /tmp: it stays
+            path.unlink()
         os.close(descriptor)
 
 
