@@ -329,3 +329,18 @@ def test_a_map_with_no_photo_of_its_name_is_said_not_passed_over(tmp_path):
     cv2.imwrite(str(tmp_path / "holiday.jpg"), textured_image(20, 30))  # its photo comes
     assert [p.name for p in scan_folder(tmp_path).lone_maps] == [
         "stereo.disparity.png", "sunset.depth-preview.png"]
+
+
+def test_a_photos_bad_map_fails_the_photo_by_its_name(tmp_path, quick_preset):
+    """The failure named only `a.depth.png`: which photo failed was left to guess."""
+    from kbbatch.batch import run_folder
+    from kbbatch.pipeline import ClipOptions
+
+    photo = tmp_path / "in" / "a.jpg"
+    photo.parent.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(photo)
+    (tmp_path / "in" / "a.depth.png").write_bytes(b"no picture")
+    report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset,
+                        ClipOptions(planner="center", threads=2), False)
+    assert report.results[0].status == "failed"
+    assert report.results[0].error.startswith(f"{photo}: {tmp_path / 'in' / 'a.depth.png'}: ")
