@@ -44,6 +44,7 @@ from kbbatch.outputs import (
     output_names,
     remove_partial_clips,
     replaced_clip_note,
+    unreplaceable,
 )
 from kbbatch.pipeline import (
     CLIP_SUFFIX,
@@ -777,6 +778,9 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         name = journal.name_to_make(source, content, preferred, output_folder,
                                     options.save_depth, name)
         output = output_folder / name
+        refusal = unreplaceable(output)
+        if refusal:  # before the render, and the clip's record left as it is
+            return ClipResult(str(source), None, "failed", 0.0, error=refusal)
         journal.start(source, fingerprint, settings[0], name, content, taken)
     except JournalError as error:
         # a full disk: not the photo's fault, and the photos after it would fail too

@@ -233,14 +233,14 @@ def _unwritable(path: Path) -> str | None:
             facts = file.stat()
         except OSError:
             continue
-        return (f"{file.name} belongs to {_user_name(facts.st_uid)}, mode "
-                f"{stat.S_IMODE(facts.st_mode):o}, and this is {_user_name(os.getuid())}: "
+        return (f"{file.name} belongs to {user_name(facts.st_uid)}, mode "
+                f"{stat.S_IMODE(facts.st_mode):o}, and this is {user_name(os.getuid())}: "
                 "run kbbatch on a folder as the user who owns its journal, or make the "
                 "folder's files group-writable for users who share it (umask 002)")
     return None
 
 
-def _user_name(uid: int) -> str:
+def user_name(uid: int) -> str:
     try:
         return pwd.getpwuid(uid).pw_name
     except KeyError:

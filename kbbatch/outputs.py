@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import stat
 import tempfile
 from collections import Counter
 from pathlib import Path
@@ -62,6 +63,22 @@ def moved_to(folder_fd: int) -> Path | None:
         return path if os.path.samestat(os.stat(path), os.fstat(folder_fd)) else None
     except OSError:
         return None
+
+
+def unreplaceable(path: Path) -> str | None:
+    """Why this user cannot replace the file at path, if so: in a sticky folder only the
+    file's owner (or the folder's, or root) may, which a run found out after the render, as
+    a raw PermissionError, the good clip's record then marked failed."""
+    try:
+        folder, file = path.parent.stat(), path.lstat()
+    except OSError:
+        return None
+    if not folder.st_mode & stat.S_ISVTX or os.geteuid() in (0, file.st_uid, folder.st_uid):
+        return None
+    from kbbatch.journal import user_name
+
+    return (f"{path}: belongs to {user_name(file.st_uid)} in a sticky folder (mode "
+            f"{stat.S_IMODE(folder.st_mode):o}): only its owner can replace it; kept")
 
 
 def check_writable(folder: Path) -> None:

@@ -188,3 +188,40 @@ def test_a_manifest_lock_holds_across_users_and_leaves_no_file(shared, monkeypat
     assert list(shared.glob("kbbatch-manifest-*.lock")) == []
     assert as_other_user(try_to_save) == "saved"
     assert list(shared.glob("kbbatch-manifest-*.lock")) == []
+
+
+def test_another_users_clip_in_a_sticky_folder_is_refused_before_the_render(
+        shared, quick_preset, monkeypatch):
+    """A sticky group output folder: a colleague's `--force` run rendered the photo, then
+    failed with a raw PermissionError at the rename, and the owner's good clip was recorded
+    failed (her next run made it again)."""
+    from PIL import Image
+
+    from kbbatch.batch import run_folder
+    from kbbatch.depth import DepthOptions
+    from kbbatch.pipeline import ClipOptions
+
+    from .conftest import textured_image
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(shared / "no-models"))  # root's cache: unread
+    photos, out = shared / "in", shared / "out"
+    photos.mkdir(mode=0o755)
+    Image.fromarray(textured_image(180, 320)).save(photos / "a.jpg")
+    options = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=1)
+    assert run_folder(photos, out, quick_preset, options, False).results[0].status == "done"
+    out.chmod(0o1777)
+    for file in out.iterdir():
+        file.chmod(0o666)
+    clip = (out / "a.mp4").read_bytes()
+
+    def force() -> str:
+        result = run_folder(photos, out, quick_preset, options, False, force=True).results[0]
+        return f"{result.status}: {result.error}"
+
+    words = as_other_user(force)
+    assert words == (f"failed: {out / 'a.mp4'}: belongs to root in a sticky folder (mode "
+                     "1777): only its owner can replace it; kept"), words
+    assert (out / "a.mp4").read_bytes() == clip
+    journal = Journal(out, read_only=True)
+    assert journal.counts()["done"] == 1
+    journal.close()
