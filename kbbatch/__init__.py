@@ -11,13 +11,20 @@ import tempfile
 from pathlib import Path
 
 
-def _writable(folder: Path) -> bool:
-    """Whether files can be made in folder, or in the folders that would be made for it (a
-    new user's home has no ~/.cache yet: the first run compiled into the temporary folder,
-    the second into ~/.cache/numba, each from scratch)."""
-    while not folder.exists() and folder.parent != folder:
+def _writable(folder: Path, base: Path) -> bool:
+    """Whether files can be made in folder, or in the folders between it and base, which must
+    exist (a new user's home has no ~/.cache yet: the first run compiled into the temporary
+    folder, the second into ~/.cache/numba, each from scratch; a home that does not exist is
+    no place to make one)."""
+    if not base.is_dir():
+        return False
+    while not folder.exists() and folder != base and folder.parent != folder:
         folder = folder.parent
     return os.access(folder, os.W_OK)
+
+
+PRIVATE_CACHE_NAMES = 4
+"""Names tried for a user's compiled-code folder in the temporary folder."""
 
 
 def _compiled_code_cache() -> None:
@@ -30,13 +37,16 @@ def _compiled_code_cache() -> None:
     no one else may write it (numba unpickles what it finds there). Set before any kernel
     module imports numba.
     """
-    if "NUMBA_CACHE_DIR" in os.environ or _writable(Path(__file__).parent / "__pycache__"):
+    package = Path(__file__).parent
+    if "NUMBA_CACHE_DIR" in os.environ or _writable(package / "__pycache__", package):
         return
     try:
-        home_cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+        xdg = os.environ.get("XDG_CACHE_HOME")
+        home_cache, base = (Path(xdg), Path(xdg)) if xdg else (Path.home() / ".cache",
+                                                                 Path.home())
     except RuntimeError:  # no HOME and no account entry to find one
-        home_cache = None
-    if home_cache is not None and _writable(home_cache / "numba"):
+        home_cache = base = None
+    if home_cache is not None and _writable(home_cache / "numba", base):
         return
     # A name taken by another user (a stale uid's, or a squatter's) gets the next one: a new
     # folder every run compiled every kernel again and was left behind, 0.7 MB a run.
@@ -55,10 +65,6 @@ def _compiled_code_cache() -> None:
     with contextlib.suppress(OSError):  # else numba says why it cannot cache
         os.environ["NUMBA_CACHE_DIR"] = fresh = tempfile.mkdtemp(prefix="kbbatch-numba-")
         atexit.register(shutil.rmtree, fresh, ignore_errors=True)
-
-
-PRIVATE_CACHE_NAMES = 4
-"""Names tried for a user's compiled-code folder in the temporary folder."""
 
 
 _compiled_code_cache()

@@ -679,8 +679,9 @@ def run_folder(
                         if result.output and Path(result.output).parent == output_folder:
                             result.output = str(now / Path(result.output).name)
                     report.notes.append(f"{output_folder} was moved to {now} during the run")
-                    if report.write(now) is None:
-                        where = f"in {now}, with this run's report"
+                    unwritten = report.write(now)
+                    where = f"in {now}, " + (f"without this run's report: {unwritten}"
+                                             if unwritten else "with this run's report")
                 lock.release()
                 raise OutputFolderError(f"{output_folder}: removed or renamed during the run; "
                                         f"stopped there (the clips made before are {where})")
@@ -747,7 +748,7 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
     """Name one photo's clip and start it in the journal; a ClipResult where there is nothing
     to make (up to date) or it cannot start (unreadable photo, journal not writable)."""
     from kbbatch.fingerprint import file_sha256
-    from kbbatch.images import capture_time, unreadable_reason
+    from kbbatch.images import capture_time, depth_image_names, unreadable_reason
     from kbbatch.journal import JournalError, source_fingerprint
 
     try:
@@ -778,9 +779,11 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         name = journal.name_to_make(source, content, preferred, output_folder,
                                     options.save_depth, name)
         output = output_folder / name
-        refusal = unreplaceable(output)
+        # its depth images too: replaced with --save-depth, removed without it
+        refusal = next(filter(None, map(unreplaceable, [output, *(
+            output.with_name(name) for name in depth_image_names(output.name))])), None)
         if refusal:  # before the render, and the clip's record left as it is
-            return ClipResult(str(source), None, "failed", 0.0, error=refusal)
+            return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {refusal}")
         journal.start(source, fingerprint, settings[0], name, content, taken)
     except JournalError as error:
         # a full disk: not the photo's fault, and the photos after it would fail too

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import math
@@ -454,14 +455,32 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
         if open_browser:
             import webbrowser
 
-            if not webbrowser.open(url):
+            # The browser is started with a file's name, not the address: its command line
+            # is open to every user of the machine, and the address carries the token.
+            redirect = redirect_page(url)
+            cleanup.callback(redirect.unlink, missing_ok=True)
+            if not webbrowser.open(redirect.as_uri()):
                 click.echo("NOTE no web browser could be started here; open the address above "
                            "in one", err=True)
 
-    try:
-        server.serve(ready)
-    except KeyboardInterrupt:
-        click.echo("stopped")
+    with contextlib.ExitStack() as cleanup:
+        try:
+            server.serve(ready)
+        except KeyboardInterrupt:
+            click.echo("stopped")
+
+
+def redirect_page(url: str) -> Path:
+    """A page only this user can read (mode 0600) that sends a browser on to url."""
+    import html
+    import tempfile
+
+    descriptor, name = tempfile.mkstemp(prefix="kbbatch-review-", suffix=".html")
+    quoted = html.escape(url, quote=True)
+    with os.fdopen(descriptor, "w", encoding="utf-8") as page:
+        page.write(f'<!doctype html><meta http-equiv="refresh" content="0;url={quoted}">'
+                   f'<title>kbbatch review</title><a href="{quoted}">kbbatch review</a>\n')
+    return Path(name)
 
 
 RENDER_REPEATS = ("preset_name", "duration", "fps", "planner", "depth_backend", "depth_model",

@@ -207,9 +207,10 @@ def _guarded(method):
             return method(self, *args, **kwargs)
         except sqlite3.Error as error:
             verb = "read" if getattr(self, "read_only", False) else "written"
+            # a run that wrote it while it was looked at as immutable: not damage
+            advice = "" if getattr(self, "immutable", False) else _damage_advice(error)
             failure = JournalError(f"{self.path}: job journal cannot be {verb} ({error})"
-                                   f"{free_space_note(self.path.parent)}"
-                                   f"{_damage_advice(error)}")
+                                   f"{free_space_note(self.path.parent)}{advice}")
             failure.disk_full = getattr(error, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL
             raise failure from error
     wrapper.__doc__ = method.__doc__
@@ -241,6 +242,7 @@ def _unwritable(path: Path) -> str | None:
 
 
 def user_name(uid: int) -> str:
+    """A user's login name, for messages about whose file is in the way."""
     try:
         return pwd.getpwuid(uid).pw_name
     except KeyError:
@@ -253,6 +255,7 @@ class Journal:
         """read_only: for looking only (`kbbatch status`), which must work on a full disk."""
         self.path = folder / JOURNAL_NAME
         self.read_only = read_only
+        self.immutable = False
         if read_only:
             self.connection = self._read_only_connection()
             self._present = self._columns()
@@ -287,10 +290,20 @@ class Journal:
 
     def _read_only_connection(self) -> sqlite3.Connection:
         uri = self.path.absolute().as_uri()
-        if not any(os.path.lexists(f) for f in _side_files(self.path)):
-            # Nothing writes it now, so the file is the whole journal: looked at as immutable,
-            # SQLite makes no side files, which another user's `kbbatch status` left, owned by
-            # them, so that the journal's own owner could no longer write it.
+        if os.path.lexists(self.path) and not os.access(self.path, os.R_OK):
+            facts = self.path.stat()  # SQLite said "unable to open database file"
+            raise JournalError(f"{self.path}: job journal cannot be read: it belongs to "
+                                  f"{user_name(facts.st_uid)}, mode "
+                                  f"{stat.S_IMODE(facts.st_mode):o}, and this is "
+                                  f"{user_name(os.getuid())}")
+        if (not any(os.path.lexists(f) for f in _side_files(self.path))
+                and _unwritable(self.path)):
+            # Another user's journal, not written now: the file is the whole journal, looked
+            # at as immutable, so that SQLite makes no side files (another user's `kbbatch
+            # status` left them, owned by that user, and the journal's own owner could write
+            # it no more). The journal's owner and group look through its log, as before: an
+            # immutable look is not safe from a run that starts meanwhile.
+            self.immutable = True
             return sqlite3.connect(f"{uri}?mode=ro&immutable=1", uri=True, timeout=30,
                                    isolation_level=None)
         connection = sqlite3.connect(f"{uri}?mode=ro", uri=True, timeout=30,

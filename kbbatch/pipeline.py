@@ -748,7 +748,7 @@ def make_clip(
     except (ImageReadError, DepthError, ManifestError, CropTooSmallError,
             DeviceError) as error:
         result.error = str(error)
-        if isinstance(error, DepthError) and not result.error.startswith(f"{source}"):
+        if isinstance(error, DepthError) and not result.error.startswith(f"{source}: "):
             result.error = f"{source}: {result.error}"  # the photo, not only its map, named
     except EncoderStoppedError as error:  # a stop signal reached ffmpeg: the photo is taken again
         result.status = "interrupted"

@@ -221,7 +221,12 @@ def move_photo(path: Path, destination: Path) -> None:
             # copied into done/ and could not be removed, a copy more at every start.
             if error.errno != errno.EXDEV:
                 raise
-            shutil.move(str(path), destination)
+            shutil.copy2(path, destination)
+            try:
+                path.unlink()
+            except OSError:
+                destination.unlink()  # one photo, in the inbox, as the error says
+                raise
         return
     # The target as written, after the way back from the new folder: tidied as text,
     # `dirlink/../x.jpg` would mean another file.

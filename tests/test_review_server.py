@@ -6,6 +6,7 @@ import json
 import os
 import re
 import signal
+import stat
 import subprocess
 import sys
 import urllib.error
@@ -109,13 +110,34 @@ def test_nothing_is_served_without_the_sessions_token(served):
     assert opened.status == 303 and opened.headers["location"] == "/"
     cookie = opened.headers["set-cookie"]
     assert cookie.startswith(f"kbbatch-review-{served.port}={served.session.token};")
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    assert "HttpOnly" in cookie and "SameSite=Lax" in cookie  # Strict: no page opens it
     with_cookie = {TOKEN_HEADER: None,
                    "Cookie": f"kbbatch-review-{served.port}={served.session.token}"}
     assert served.request("GET", "/api/photos/tall.png/image", headers=with_cookie
                           ).status == 200
+    again = served.request("GET", served.url[served.url.index("/?"):], headers=with_cookie)
+    assert again.status == 303  # the token leaves the address bar whenever it is in it
+    # a save needs the header too: a cookie goes with any request another page makes
+    saved = served.request("POST", "/api/save", b'{"entries": {}}',
+                           with_cookie | {"Content-Type": "application/json"})
+    assert saved.status == 403
     other_port = {TOKEN_HEADER: None, "Cookie": f"kbbatch-review-1={served.session.token}"}
     assert served.request("GET", "/api/photos", headers=other_port).status == 403
+
+
+def test_open_hands_the_browser_a_private_page_not_the_address():
+    """`--open` started the browser with the address, token and all, on its command line,
+    which every user of the machine can read."""
+    from kbbatch.cli import redirect_page
+
+    url = "http://127.0.0.1:8765/?token=abc-DEF_1"
+    page = redirect_page(url)
+    try:
+        assert stat.S_IMODE(page.stat().st_mode) == 0o600
+        assert f'content="0;url={url}"' in page.read_text()
+        assert "token" not in page.as_uri()
+    finally:
+        page.unlink()
 
 
 def test_page_and_its_files_are_served_with_the_token(served):

@@ -76,7 +76,11 @@ def test_a_journal_another_user_cannot_write_is_refused_at_once_leaving_nothing(
     """It opened read-only: every clip of the run failed "attempt to write a readonly
     database" (up-to-date ones too), and it left side files of its own beside the journal,
     which then stopped the journal's owner too."""
-    Journal(shared).close()  # root's, mode 644
+    previous = os.umask(0o022)
+    try:
+        Journal(shared).close()  # root's, mode 644
+    finally:
+        os.umask(previous)
     words = as_other_user(lambda: str(Journal(shared)))
     assert words.startswith(JournalError.__name__), words
     assert f"{JOURNAL_NAME} belongs to root, mode 644, and this is nobody" in words, words
@@ -100,6 +104,11 @@ def test_looking_at_another_users_journal_leaves_no_files_behind(shared):
 
     assert "'running': 1" in as_other_user(look)
     assert side_files(shared) == []
+    (shared / JOURNAL_NAME).chmod(0o600)  # a private one: said whose, not SQLite's words
+    words = as_other_user(look)
+    assert f"{JOURNAL_NAME}: job journal cannot be read: it belongs to root, mode 600, and " \
+        "this is nobody" in words, words
+    (shared / JOURNAL_NAME).chmod(0o644)
     journal = Journal(shared)
     journal.finish(shared / "a.jpg", "done", 1.0)
     assert journal.counts()["done"] == 1
@@ -140,7 +149,12 @@ def test_a_new_users_compiled_code_goes_where_it_will_stay(shared):
     every kernel into the temporary folder and the second, into ~/.cache/numba, again."""
     import kbbatch
 
-    assert kbbatch._writable(shared / "home" / ".cache" / "numba")
+    home = shared / "home"
+    home.mkdir()
+    assert kbbatch._writable(home / ".cache" / "numba", home)
+    # a home that does not exist is no place to make one (root's service with HOME=/nonexistent)
+    assert not kbbatch._writable(shared / "nonexistent" / ".cache" / "numba",
+                                 shared / "nonexistent")
 
 
 def test_a_compiled_code_folder_name_taken_by_another_user_gets_the_next_one(shared):
@@ -170,6 +184,7 @@ def test_a_manifest_lock_holds_across_users_and_leaves_no_file(shared, monkeypat
     from kbbatch.web import app
     from kbbatch.web.app import RequestError, manifest_lock
 
+    shared.chmod(0o1777)  # as /tmp is
     monkeypatch.setattr(tempfile, "tempdir", str(shared))
     monkeypatch.setattr(app, "MANIFEST_LOCK_WAIT_S", 0.3)
     manifest = shared / "manifest.json"
@@ -219,7 +234,8 @@ def test_another_users_clip_in_a_sticky_folder_is_refused_before_the_render(
         return f"{result.status}: {result.error}"
 
     words = as_other_user(force)
-    assert words == (f"failed: {out / 'a.mp4'}: belongs to root in a sticky folder (mode "
+    assert words == (f"failed: {photos / 'a.jpg'}: {out / 'a.mp4'}: belongs to root in a "
+                     "sticky folder (mode "
                      "1777): only its owner can replace it; kept"), words
     assert (out / "a.mp4").read_bytes() == clip
     journal = Journal(out, read_only=True)

@@ -78,10 +78,12 @@ TOKEN_PARAMETER = "token"
 """The query parameter of the address a session prints, which sets its cookie."""
 
 
-def token_cookie(port: str) -> str:
+def token_cookie(port: str) -> str:  # port: as the WSGI environment gives it
     """The session's cookie, named for its port: a browser sends a host's cookies to every
     port, and two sessions side by side must not take each other's."""
     return f"kbbatch-review-{port}"
+
+
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "[::1]")
 
 PREVIEW_LONG_SIDE_PX = 480
@@ -554,7 +556,9 @@ def manifest_lock(manifest: Path):
     deadline = time.monotonic() + MANIFEST_LOCK_WAIT_S
     while True:
         try:
-            descriptor = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)
+            descriptor = _open_lock_file(path)
+        except FileExistsError:  # made by another review between its two tries
+            continue
         except OSError as error:  # this server's own lock still holds
             log.warning("%s: no lock against other reviews (%s)", path, error.strerror or error)
             yield
@@ -574,6 +578,16 @@ def manifest_lock(manifest: Path):
         with contextlib.suppress(OSError):  # another user's, in a sticky /tmp: it stays
             path.unlink()
         os.close(descriptor)
+
+
+def _open_lock_file(path: Path) -> int:
+    """The lock file opened for reading, made if missing. Opened with O_CREAT, another
+    user's file in a sticky /tmp is refused where fs.protected_regular is set (systemd's
+    default), so it is made only when it is not there."""
+    try:
+        return os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return os.open(path, os.O_RDONLY | os.O_CREAT | os.O_EXCL, 0o644)
 
 
 def unreadable_words(error: OSError, name: str) -> str:
@@ -649,12 +663,14 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
         # Every user of the machine reaches the loopback address: without the token, another
         # user read the photos of a private folder and took the token from the page.
         cookie = token_cookie(request.environ.get("SERVER_PORT", ""))
-        if is_token(request.headers.get(TOKEN_HEADER)) or is_token(request.cookies.get(cookie)):
-            return None
         if request.path == "/" and is_token(request.args.get(TOKEN_PARAMETER)):
             response = redirect("/", 303)  # the token leaves the address bar and history
-            response.set_cookie(cookie, session.token, httponly=True, samesite="Strict")
+            # Lax: the address opened from another page (a chat, a web terminal) is a
+            # cross-site visit, which a Strict cookie does not follow; a GET changes nothing
+            response.set_cookie(cookie, session.token, httponly=True, samesite="Lax")
             return response
+        if is_token(request.headers.get(TOKEN_HEADER)) or is_token(request.cookies.get(cookie)):
+            return None
         raise RequestError(403, "this review session's key is missing: open the address "
                            f"`kbbatch review` printed (it ends in ?{TOKEN_PARAMETER}=...)")
 
