@@ -264,8 +264,13 @@ class Journal:
         refusal = _unwritable(self.path)
         if refusal:  # before SQLite leaves files of this user's beside it: see _unwritable
             raise JournalError(f"{self.path}: job journal cannot be written ({refusal})")
-        with contextlib.suppress(FileExistsError):  # made as the clips are: the umask's mode
+        try:  # made as the clips are: the umask's mode
             os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except FileExistsError:
+            pass
+        except OSError as error:
+            raise JournalError(f"{self.path}: job journal cannot be made "
+                               f"({error.strerror or error})") from error
         self.connection = sqlite3.connect(self.path, timeout=30, isolation_level=None)
         self.connection.execute("PRAGMA journal_mode=WAL")
         self.connection.execute("PRAGMA synchronous=FULL")

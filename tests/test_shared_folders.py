@@ -241,3 +241,11 @@ def test_another_users_clip_in_a_sticky_folder_is_refused_before_the_render(
     journal = Journal(out, read_only=True)
     assert journal.counts()["done"] == 1
     journal.close()
+
+
+def test_a_journal_that_cannot_be_made_says_why(shared):
+    private = shared / "roots"
+    private.mkdir(mode=0o755)
+    words = as_other_user(lambda: str(Journal(private)))
+    assert words == (f"JournalError: {private / JOURNAL_NAME}: job journal cannot be made "
+                     "(Permission denied)"), words
