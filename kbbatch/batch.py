@@ -145,8 +145,8 @@ class RunReport:
         path = report_path(output_folder)
         if path is None:
             return (f"{output_folder / REPORT_NAME} and {output_folder / OTHER_REPORT_NAME}: "
-                    "files of another's, not this folder's run reports; kept, so no report "
-                    "was written")
+                    "files of another's (not this folder's run reports, or another user's in "
+                    "a sticky folder); kept, so no report was written")
         note = foreign_report_note(output_folder, path)
         if path.name != REPORT_NAME and note not in self.notes:
             self.notes.append(note)
@@ -187,9 +187,10 @@ def _stamp(path: Path) -> tuple[int, int, int] | None:
 
 
 def foreign_report_note(output_folder: Path, written: Path | None) -> str:
-    return (f"{output_folder / REPORT_NAME}: not this folder's run report (a file of yours, or "
-            "a report copied from another folder); kept"
-            + (f", this run's report is {written}" if written else ""))
+    first = output_folder / REPORT_NAME
+    why = unreplaceable(first) or (f"{first}: not this folder's run report (a file of yours, "
+                                   "or a report copied from another folder); kept")
+    return why + (f", this run's report is {written}" if written else "")
 
 
 REPORT_KEYS = frozenset({"folder", "output_folder", "preset", "started_at", "clips"})
@@ -241,7 +242,8 @@ def report_path(output_folder: Path) -> Path | None:
     then OTHER_REPORT_NAME unless one is there too; None then."""
     for name in (REPORT_NAME, OTHER_REPORT_NAME):
         path = output_folder / name
-        if not os.path.lexists(path) or is_run_report(path, output_folder):
+        if ((not os.path.lexists(path) or is_run_report(path, output_folder))
+                and unreplaceable(path) is None):  # another user's, in a sticky folder
             return path
     return None
 

@@ -8,7 +8,9 @@ import logging
 import math
 import os
 import re
+import signal
 import sys
+import threading
 import unicodedata
 from dataclasses import fields
 from pathlib import Path
@@ -459,15 +461,28 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
             # is open to every user of the machine, and the address carries the token.
             redirect = redirect_page(url)
             cleanup.callback(redirect.unlink, missing_ok=True)
+            removal = threading.Timer(REDIRECT_PAGE_S, redirect.unlink, kwargs={"missing_ok": True})
+            removal.daemon = True  # the browser has read it by then
+            removal.start()
             if not webbrowser.open(redirect.as_uri()):
                 click.echo("NOTE no web browser could be started here; open the address above "
                            "in one", err=True)
 
+    def stop(*_: object) -> None:
+        raise KeyboardInterrupt  # a stop, or the terminal closed: cleaned up as Ctrl-C is
+
+    signal.signal(signal.SIGTERM, stop)
+    if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup`: ignored
+        signal.signal(signal.SIGHUP, stop)
     with contextlib.ExitStack() as cleanup:
         try:
             server.serve(ready)
         except KeyboardInterrupt:
             click.echo("stopped")
+
+
+REDIRECT_PAGE_S = 60.0
+"""How long `review --open`'s redirect page (which holds the token) is left for the browser."""
 
 
 def redirect_page(url: str) -> Path:

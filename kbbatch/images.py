@@ -6,6 +6,7 @@ arrays into files, and names the file in every error.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import hashlib
@@ -13,9 +14,9 @@ import io
 import logging
 import os
 import re
+import secrets
 import shutil
 import stat
-import tempfile
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -59,8 +60,6 @@ Image.MAX_IMAGE_PIXELS = None  # we enforce our own, clearer limit below
 
 log = logging.getLogger(__name__)
 
-_UMASK = os.umask(0)
-os.umask(_UMASK)
 
 
 class ImageReadError(Exception):
@@ -520,23 +519,37 @@ def atomic_output(final_path: Path, suffix: str, make_folder: bool = True):
     was made again, under the run's feet)."""
     if make_folder:
         final_path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp_name = tempfile.mkstemp(
-        prefix=_temp_prefix(final_path.stem), suffix=f".part{suffix}", dir=final_path.parent
-    )
-    os.close(handle)
-    temp_path = Path(temp_name)
+    temp_path = _new_temp_file(final_path.parent, _temp_prefix(final_path.stem),
+                               f".part{suffix}")
     try:
         yield temp_path
-        # mkstemp makes 0600: a file replaced keeps its own mode (a private 0600 manifest
-        # became world-readable), a new one gets what open() would give
-        try:
-            mode = stat.S_IMODE(os.stat(final_path).st_mode)
-        except OSError:
-            mode = 0o666 & ~_UMASK
-        os.chmod(temp_path, mode)
+        # a file replaced keeps its own mode (a private 0600 manifest became world-readable)
+        with contextlib.suppress(FileNotFoundError):
+            os.chmod(temp_path, stat.S_IMODE(os.stat(final_path).st_mode))
         os.replace(temp_path, final_path)
     finally:
         temp_path.unlink(missing_ok=True)
+
+
+TEMP_NAME_CHARACTERS = "abcdefghijklmnopqrstuvwxyz0123456789_"
+
+
+def _new_temp_file(folder: Path, prefix: str, suffix: str) -> Path:
+    """An empty file of a new name, made as open() makes one: with the umask's mode, or the
+    folder's default ACL. mkstemp's 0600, widened by hand with the umask, dropped the group
+    write a default ACL gives the users who share a folder."""
+    for _ in range(TEMP_NAME_TRIES):
+        name = "".join(secrets.choice(TEMP_NAME_CHARACTERS) for _ in range(8))
+        path = folder / f"{prefix}{name}{suffix}"
+        try:
+            os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return path
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary name", str(folder))
+
+
+TEMP_NAME_TRIES = 100
 
 
 DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})

@@ -236,8 +236,9 @@ def _unwritable(path: Path) -> str | None:
             continue
         return (f"{file.name} belongs to {user_name(facts.st_uid)}, mode "
                 f"{stat.S_IMODE(facts.st_mode):o}, and this is {user_name(os.getuid())}: "
-                "run kbbatch on a folder as the user who owns its journal, or make the "
-                "folder's files group-writable for users who share it (umask 002)")
+                "run kbbatch on this folder as its owner, or give the users who share it a "
+                "group of theirs with write access to its files (chgrp, chmod g+w; then "
+                "umask 002 keeps new files so)")
     return None
 
 

@@ -192,3 +192,26 @@ def test_an_entry_keeps_isnets_map_for_the_planner():
     assert depth_cache.load(key(1)).segmentation is None  # no photo to tie it to
     other_size = np.zeros((SIDE_PX // 2, SIDE_PX, 3), np.uint8)
     assert depth_cache.load(key(1), other_size).segmentation is None
+
+
+def test_the_users_own_cache_is_private(tmp_path, monkeypatch):
+    """Depth maps, plans and preview clips of photos in a private folder sat in a 755 cache
+    under a 755 home: every user of the machine could read them."""
+    import stat
+
+    from kbbatch.depth import cache
+
+    monkeypatch.delenv(cache.CACHE_ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    cache._made_private.cache_clear()
+    made = cache.cache_dir()
+    assert made == tmp_path / "xdg" / "kbbatch" / "depth"
+    assert stat.S_IMODE(made.stat().st_mode) == 0o700
+    made.chmod(0o755)  # an earlier version's
+    cache._made_private.cache_clear()
+    assert stat.S_IMODE(cache.cache_dir().stat().st_mode) == 0o700
+    # a cache named on purpose (KBBATCH_CACHE, perhaps shared) keeps its mode
+    shared = tmp_path / "shared"
+    shared.mkdir(mode=0o755)
+    monkeypatch.setenv(cache.CACHE_ENV, str(shared))
+    assert cache.cache_dir() == shared and stat.S_IMODE(shared.stat().st_mode) == 0o755

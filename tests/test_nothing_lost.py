@@ -172,8 +172,9 @@ def test_a_report_that_cannot_be_written_fails_the_run(tmp_path):
     run = subprocess.run([*CLI, str(folder), "-o", str(out), "--quiet", *FAST_CLI],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stderr
-    assert "kbbatch-run-report.json: files of another's, not this folder's run reports; kept, " \
-        "so no report was written" in run.stderr, run.stderr
+    assert "kbbatch-run-report.json: files of another's (not this folder's run reports, or " \
+        "another user's in a sticky folder); kept, so no report was written" in run.stderr, \
+        run.stderr
     assert visible_clips(out) == ["a.mp4"]
 
 

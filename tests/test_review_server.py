@@ -9,6 +9,7 @@ import signal
 import stat
 import subprocess
 import sys
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -138,6 +139,31 @@ def test_open_hands_the_browser_a_private_page_not_the_address():
         assert "token" not in page.as_uri()
     finally:
         page.unlink()
+
+
+def test_open_leaves_no_redirect_page_after_a_stop_signal(folder, tmp_path):
+    """The page with the token stayed in /tmp after SIGTERM or a closed terminal."""
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
+               str(tmp_path / "cli.json"), "--port", "0", "--depth", "ramp", "--open"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=os.environ | {"PYTHONUNBUFFERED": "1",
+                                                            "TMPDIR": str(scratch),
+                                                            "BROWSER": "true"})
+    try:
+        process.stdout.readline()
+        deadline = time.monotonic() + 30
+        while not list(scratch.glob("kbbatch-review-*.html")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert list(scratch.glob("kbbatch-review-*.html"))
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+        assert list(scratch.glob("kbbatch-review-*.html")) == []
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 def test_page_and_its_files_are_served_with_the_token(served):

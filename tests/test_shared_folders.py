@@ -197,9 +197,9 @@ def test_a_manifest_lock_holds_across_users_and_leaves_no_file(shared, monkeypat
             return f"refused: {error.message}"
 
     with manifest_lock(manifest):
-        assert len(list(shared.glob("kbbatch-manifest-*.lock"))) == 1
+        [lock] = shared.glob("kbbatch-manifest-*.lock")
         assert as_other_user(try_to_save) == \
-            f"refused: {manifest}: another review is saving it; try again"
+            f"refused: {manifest}: another review is saving it (it holds {lock}); try again"
     assert list(shared.glob("kbbatch-manifest-*.lock")) == []
     assert as_other_user(try_to_save) == "saved"
     assert list(shared.glob("kbbatch-manifest-*.lock")) == []
@@ -249,3 +249,68 @@ def test_a_journal_that_cannot_be_made_says_why(shared):
     words = as_other_user(lambda: str(Journal(private)))
     assert words == (f"JournalError: {private / JOURNAL_NAME}: job journal cannot be made "
                      "(Permission denied)"), words
+
+
+def test_another_users_report_in_a_sticky_folder_sends_this_runs_to_the_other_name(
+        shared, quick_preset, monkeypatch):
+    """A shared sticky output folder: the run after another user's made its clips, then
+    could not replace that user's report, and exited 1 saying only "Operation not
+    permitted"."""
+    from PIL import Image
+
+    from kbbatch.batch import OTHER_REPORT_NAME, REPORT_NAME, run_folder
+    from kbbatch.depth import DepthOptions
+    from kbbatch.pipeline import ClipOptions
+
+    from .conftest import textured_image
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(shared / "no-models"))
+    options = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=1)
+    out = shared / "out"
+    out.mkdir(mode=0o777)
+    out.chmod(0o1777)
+    for name, seed in (("roots", 0), ("nobodys", 1)):
+        (shared / name).mkdir(mode=0o755)
+        Image.fromarray(textured_image(180, 320, seed)).save(shared / name / f"{name}.jpg")
+    previous = os.umask(0)  # a journal every user may write
+    try:
+        run_folder(shared / "roots", out, quick_preset, options, False)
+    finally:
+        os.umask(previous)
+    ours = (out / REPORT_NAME).read_bytes()
+
+    def run() -> str:
+        report = run_folder(shared / "nobodys", out, quick_preset, options, False)
+        return f"{[r.status for r in report.results]} {report.unwritten}"
+
+    assert as_other_user(run) == "['done'] None"
+    assert (out / REPORT_NAME).read_bytes() == ours
+    assert '"nobodys.jpg"' not in ours.decode()
+    assert "nobodys.jpg" in (out / OTHER_REPORT_NAME).read_text()
+
+
+def test_a_new_file_takes_the_folders_default_acl(shared):
+    """A folder shared through a default ACL (group write for its users): the journal got
+    it, while clips and reports came out group read-only, the umask applied by hand."""
+    import struct
+
+    from kbbatch.images import atomic_output
+
+    read_write, read = 6, 4
+    entries = ((0x01, read_write, 0xFFFFFFFF), (0x02, read_write, OTHER_UID),  # owner, nobody
+               (0x04, read, 0xFFFFFFFF), (0x10, read_write, 0xFFFFFFFF),  # group, mask
+               (0x20, read, 0xFFFFFFFF))  # others
+    acl = struct.pack("<I", 2) + b"".join(struct.pack("<HHI", *e) for e in entries)
+    try:
+        os.setxattr(shared, "system.posix_acl_default", acl)
+    except OSError as error:
+        pytest.skip(f"no POSIX ACLs on this file system ({error.strerror})")
+    previous = os.umask(0o022)
+    try:
+        with atomic_output(shared / "a.mp4", ".mp4") as temp_path:
+            temp_path.write_bytes(b"a clip")
+    finally:
+        os.umask(previous)
+    # with an ACL, the group bits of the mode are its mask: nobody may write the clip
+    assert stat.S_IMODE((shared / "a.mp4").stat().st_mode) & 0o060 == 0o060
+    assert as_other_user(lambda: str((shared / "a.mp4").open("ab").write(b"!"))) == "1"

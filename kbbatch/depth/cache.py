@@ -40,10 +40,25 @@ ENTRY_PATTERN = re.compile(r"[0-9a-f]{32}\.npz")
 def cache_dir() -> Path:
     override = os.environ.get(CACHE_ENV)
     if override:
-        return Path(override).expanduser()
+        return Path(override).expanduser()  # a cache shared on purpose keeps its modes
     import platformdirs
 
-    return Path(platformdirs.user_cache_dir("kbbatch")) / "depth"
+    folder = Path(platformdirs.user_cache_dir("kbbatch")) / "depth"
+    _made_private(folder)
+    return folder
+
+
+@functools.cache
+def _made_private(folder: Path) -> None:
+    """The user's own cache, made (or made again) readable by this user alone, as the
+    freedesktop thumbnail spec asks of what is derived from a user's pictures: its depth
+    maps, and the review's plans and preview clips, of a photo in a private folder were
+    readable by every user of the machine (a home is 755 by default). Once per process."""
+    with contextlib.suppress(OSError):  # no writable home: said where the cache is written
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        status = folder.stat()
+        if status.st_uid == os.geteuid() and status.st_mode & 0o077:
+            folder.chmod(0o700)
 
 
 SALIENCY_LEVELS = 65535

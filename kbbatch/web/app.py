@@ -565,7 +565,8 @@ def manifest_lock(manifest: Path):
             return
         if not locked_within(descriptor, max(0.0, deadline - time.monotonic())):
             os.close(descriptor)
-            raise RequestError(409, f"{manifest}: another review is saving it; try again")
+            raise RequestError(409, f"{manifest}: another review is saving it (it holds "
+                               f"{path}); try again")
         try:
             if os.path.samestat(os.fstat(descriptor), os.stat(path)):
                 break
