@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from kbbatch import models
+from kbbatch.batch import name_job
 from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
@@ -65,7 +66,6 @@ from kbbatch.manifest import (
 from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
-    clip_name_note,
     folder_identity,
     output_names,
     remove_partial_clips,
@@ -75,7 +75,6 @@ from kbbatch.pipeline import (
     ClipOptions,
     ClipResult,
     clip_fingerprints,
-    depth_images_missing,
     make_clip,
     remove_stale_scratch,
 )
@@ -268,7 +267,6 @@ class InFlight:
     path: Path
     fingerprint: str  # size and time when taken: a change since means it was still written
     output: str
-    preferred: str
     renamed: bool
     replaces: bool = False  # its clip replaces one made from the photo's earlier bytes
     content: str = ""  # sha256 of its bytes when taken
@@ -582,39 +580,30 @@ class JobRunner:
                 self.file_failure(path, result)
                 continue
             preferred = self.preferred_name(path)
-            self.journal.adopt_marked_clip(path, fingerprint, settings, content, s.outbox,
-                                           preferred)
-            previous = self.journal.job_of(path, content)
-            name = self.journal.clip_name(path, content, preferred, s.outbox, options.save_depth)
-            if previous is not None and previous.output == name:
-                preferred = name  # its own name, kept: nothing to note
-            output = s.outbox / name
-            if self.journal.is_up_to_date(path, fingerprint, settings, output, content) and not (
-                    options.save_depth and depth_images_missing(output)):
-                inbox.forget(path)
-                log.info("%s: clip already complete%s", path.name,
-                         "" if self.keep_sources else ", moving the photo")
-                self.move_source(path, DONE_FOLDER)
-                continue
-            name = self.journal.name_to_make(path, content, preferred, s.outbox,
-                                             options.save_depth, name)
-            output = s.outbox / name
-            self.journal.start(path, fingerprint, settings[0], name, content)
+            job = name_job(self.journal, path, s.outbox, preferred, entry, fingerprint, content,
+                           settings, options.save_depth)
             inbox.forget(path)
-            note = clip_name_note(path, s.outbox, preferred, name, content, settings)
-            if note is not None:
-                log.warning("%s", note)
-            replaces = (previous is not None
-                        and previous.made_from_other_bytes(name, content, output))
+            if isinstance(job, ClipResult):
+                if job.status == "skipped":
+                    if job.note:
+                        log.info("%s", job.note)
+                    log.info("%s: clip already complete%s", path.name,
+                             "" if self.keep_sources else ", moving the photo")
+                    self.move_source(path, DONE_FOLDER)
+                else:  # its clip's name is another user's file in a sticky outbox
+                    self.file_failure(path, job)
+                continue
+            if job.name_note is not None:
+                log.warning("%s", job.name_note)
             log.info("start %s", path.name)
             try:
-                future = self.pool.submit(_render, path, output, s.preset, options, entry)
+                future = self.pool.submit(_render, path, job.output, s.preset, options, entry)
             except BrokenProcessPool:  # broke since the last look: its jobs come back below
                 self.journal.finish(path, "queued", 0.0, "worker pool broken; retrying")
                 self.requeue(path, True)
                 return
-            self.in_flight[future] = InFlight(path, fingerprint, name, preferred, renamed,
-                                              replaces, content)
+            self.in_flight[future] = InFlight(path, fingerprint, job.output.name, renamed,
+                                              job.replaces_other_bytes, content)
 
     def preferred_name(self, source: Path) -> str:
         """The batch's rule (outputs.output_names) over the photos in the inbox now."""

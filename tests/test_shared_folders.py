@@ -314,3 +314,55 @@ def test_a_new_file_takes_the_folders_default_acl(shared):
     # with an ACL, the group bits of the mode are its mask: nobody may write the clip
     assert stat.S_IMODE((shared / "a.mp4").stat().st_mode) & 0o060 == 0o060
     assert as_other_user(lambda: str((shared / "a.mp4").open("ab").write(b"!"))) == "1"
+
+
+def test_the_daemon_refuses_another_users_clip_in_a_sticky_outbox_before_the_render(
+        shared, quick_preset, monkeypatch):
+    """The batch refused it before the render; the daemon, naming clips by its own copy of
+    the rule, started the render (and failed with a raw PermissionError at the rename)."""
+    import json
+    import threading
+
+    from PIL import Image
+
+    from kbbatch.batch import run_folder
+    from kbbatch.depth import DepthOptions
+    from kbbatch.pipeline import ClipOptions
+    from kbbatch.watch import InboxTracker, JobRunner, WatchSettings
+
+    from .conftest import textured_image
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(shared / "no-models"))  # root's cache: unread
+    inbox, out = shared / "inbox", shared / "out"
+    inbox.mkdir(mode=0o777)
+    inbox.chmod(0o777)
+    Image.fromarray(textured_image(180, 320)).save(inbox / "a.jpg")
+    made = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=1)
+    assert run_folder(inbox, out, quick_preset, made, False).results[0].status == "done"
+    out.chmod(0o1777)
+    for file in out.iterdir():
+        file.chmod(0o666)
+    clip = (out / "a.mp4").read_bytes()
+    other_settings = ClipOptions(planner="auto", depth=DepthOptions(backend="ramp"), threads=1)
+
+    def daemon_takes_the_photo() -> str:
+        journal = Journal(out)
+        runner = JobRunner(WatchSettings(inbox, out, quick_preset, other_settings), journal,
+                           False, out / "failed", lambda path, renamed: None)
+        tracker = InboxTracker(inbox, 0.0)
+        tracker.notice(inbox / "a.jpg", renamed=True)
+        tracker.collect_events()
+        runner.submit_ready(tracker, other_settings, threading.Event())
+        journal.close()
+        return f"in flight: {len(runner.in_flight)}"
+
+    assert as_other_user(daemon_takes_the_photo) == "in flight: 0"
+    assert (out / "a.mp4").read_bytes() == clip
+    [report] = (inbox / "failed").glob("a*.error.json")
+    assert json.loads(report.read_text())["error"] == (
+        f"{inbox / 'a.jpg'}: {out / 'a.mp4'}: belongs to root in a sticky folder (mode 1777): "
+        "only its owner can replace it; kept")
+    assert (inbox / "failed" / "a.jpg").is_file()
+    journal = Journal(out, read_only=True)
+    assert journal.counts()["done"] == 1
+    journal.close()

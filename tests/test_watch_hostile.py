@@ -352,7 +352,7 @@ def finish_one(tmp_path: Path, name: str, result_status: str, error: str | None 
     future: Future = Future()
     future.set_result(ClipResult(str(photo), str(outbox / clip) if result_status == "done"
                                  else None, result_status, 0.1, error=error))
-    runner.in_flight[future] = InFlight(photo, "1:1", clip, clip, True)
+    runner.in_flight[future] = InFlight(photo, "1:1", clip, True)
     runner.finish_completed({photo})  # the observer saw the deletion
     assert runner.in_flight == {}
     return inbox, journal, requeued
@@ -408,7 +408,7 @@ def test_a_rename_seen_after_the_clip_is_finished_still_gives_the_clip_to_the_ph
     future: Future = Future()
     future.set_result(ClipResult(str(photo), str(outbox / "p.mp4"), "done", 0.1,
                                  content=content))
-    runner.in_flight[future] = InFlight(photo, "1:1", "p.mp4", "p.mp4", False, False, content)
+    runner.in_flight[future] = InFlight(photo, "1:1", "p.mp4", False, False, content)
     runner.finish_completed(set(), {})  # the rename not yet seen
     assert future in runner.in_flight, "finished before the observer could say what happened"
     runner.finish_completed(set(), {photo: renamed})  # the observer's word
@@ -427,7 +427,7 @@ def test_a_rename_seen_after_the_clip_is_finished_still_gives_the_clip_to_the_ph
                        journal2, False, inbox / "failed", lambda path, again: None)
     journal2.start(photo, "1:1", "settings", "p.mp4", content)
     (outbox2 / "p.mp4").write_bytes(b"the photo's clip")
-    runner.in_flight[future] = InFlight(photo, "1:1", "p.mp4", "p.mp4", False, False, content)
+    runner.in_flight[future] = InFlight(photo, "1:1", "p.mp4", False, False, content)
     runner.finish_completed(set(), {})
     assert runner.in_flight == {} and runner.gone_since == {}
     [job] = journal2.jobs("done")
@@ -451,7 +451,7 @@ def test_deletions_are_kept_only_while_their_photos_are_in_flight(tmp_path):
     from kbbatch.watch import InFlight
 
     rendering = inbox / "z.jpg"  # its clip is still being made: its deletion matters
-    runner.in_flight[Future()] = InFlight(rendering, "1:1", "z.mp4", "z.mp4", True)
+    runner.in_flight[Future()] = InFlight(rendering, "1:1", "z.mp4", True)
     removed = {inbox / "x.jpg", inbox / "y.jpg", rendering}
     runner.finish_completed(removed)
     assert removed == {rendering}
@@ -484,7 +484,7 @@ def test_a_photo_whose_encoder_is_stopped_again_and_again_is_set_aside(tmp_path)
         future: Future = Future()
         future.set_result(ClipResult(str(photo), None, "interrupted", 0.1,
                                      error="ffmpeg was stopped by a signal"))
-        runner.in_flight[future] = InFlight(photo, taken, "a.mp4", "a.mp4", True)
+        runner.in_flight[future] = InFlight(photo, taken, "a.mp4", True)
         runner.finish_completed()
         if attempt < ENCODER_STOPS_TO_FAIL:
             assert requeued == [photo] * attempt and journal.get(photo).state == "queued"
@@ -1117,7 +1117,7 @@ def test_a_clip_of_a_photo_replaced_before_its_read_is_journaled_under_the_bytes
     settings = clip_fingerprints(photo, content_a, preset, options, None)
     journal.start(photo, taken, settings[0], "X.mp4", content_a)
     made = Future()
-    runner.in_flight[made] = InFlight(photo, taken, "X.mp4", "X.mp4", False, False, content_a)
+    runner.in_flight[made] = InFlight(photo, taken, "X.mp4", False, False, content_a)
     photo.unlink()
     photo.write_bytes(photo_bytes(tmp_path, 2))  # another photo, read by the worker
     (outbox / "X.mp4").write_bytes(b"the clip of the second photo")
