@@ -205,29 +205,42 @@ def test_a_manifest_lock_holds_across_users_and_leaves_no_file(shared, monkeypat
     assert list(shared.glob("kbbatch-manifest-*.lock")) == []
 
 
+def clip_in_sticky_folder(photos: Path, out: Path, preset, monkeypatch) -> bytes:
+    """Root's clip of photos/a.jpg (made by a run with QUICK_OPTIONS) in out, then made a
+    sticky folder every user may write, its journal too; returns the clip's bytes."""
+    from PIL import Image
+
+    from kbbatch.batch import run_folder
+
+    from .conftest import textured_image
+
+    monkeypatch.setenv("KBBATCH_MODELS", str(photos.parent / "no-models"))  # root's: unread
+    Image.fromarray(textured_image(180, 320)).save(photos / "a.jpg")
+    assert run_folder(photos, out, preset, quick_options(), False).results[0].status == "done"
+    out.chmod(0o1777)
+    for file in out.iterdir():
+        file.chmod(0o666)
+    return (out / "a.mp4").read_bytes()
+
+
+def quick_options(planner: str = "center"):
+    from kbbatch.depth import DepthOptions
+    from kbbatch.pipeline import ClipOptions
+
+    return ClipOptions(planner=planner, depth=DepthOptions(backend="ramp"), threads=1)
+
+
 def test_another_users_clip_in_a_sticky_folder_is_refused_before_the_render(
         shared, quick_preset, monkeypatch):
     """A sticky group output folder: a colleague's `--force` run rendered the photo, then
     failed with a raw PermissionError at the rename, and the owner's good clip was recorded
     failed (her next run made it again)."""
-    from PIL import Image
-
     from kbbatch.batch import run_folder
-    from kbbatch.depth import DepthOptions
-    from kbbatch.pipeline import ClipOptions
 
-    from .conftest import textured_image
-
-    monkeypatch.setenv("KBBATCH_MODELS", str(shared / "no-models"))  # root's cache: unread
     photos, out = shared / "in", shared / "out"
     photos.mkdir(mode=0o755)
-    Image.fromarray(textured_image(180, 320)).save(photos / "a.jpg")
-    options = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=1)
-    assert run_folder(photos, out, quick_preset, options, False).results[0].status == "done"
-    out.chmod(0o1777)
-    for file in out.iterdir():
-        file.chmod(0o666)
-    clip = (out / "a.mp4").read_bytes()
+    clip = clip_in_sticky_folder(photos, out, quick_preset, monkeypatch)
+    options = quick_options()
 
     def force() -> str:
         result = run_folder(photos, out, quick_preset, options, False, force=True).results[0]
@@ -323,27 +336,13 @@ def test_the_daemon_refuses_another_users_clip_in_a_sticky_outbox_before_the_ren
     import json
     import threading
 
-    from PIL import Image
-
-    from kbbatch.batch import run_folder
-    from kbbatch.depth import DepthOptions
-    from kbbatch.pipeline import ClipOptions
     from kbbatch.watch import InboxTracker, JobRunner, WatchSettings
 
-    from .conftest import textured_image
-
-    monkeypatch.setenv("KBBATCH_MODELS", str(shared / "no-models"))  # root's cache: unread
     inbox, out = shared / "inbox", shared / "out"
     inbox.mkdir(mode=0o777)
     inbox.chmod(0o777)
-    Image.fromarray(textured_image(180, 320)).save(inbox / "a.jpg")
-    made = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=1)
-    assert run_folder(inbox, out, quick_preset, made, False).results[0].status == "done"
-    out.chmod(0o1777)
-    for file in out.iterdir():
-        file.chmod(0o666)
-    clip = (out / "a.mp4").read_bytes()
-    other_settings = ClipOptions(planner="auto", depth=DepthOptions(backend="ramp"), threads=1)
+    clip = clip_in_sticky_folder(inbox, out, quick_preset, monkeypatch)
+    other_settings = quick_options(planner="auto")
 
     def daemon_takes_the_photo() -> str:
         journal = Journal(out)
