@@ -38,9 +38,9 @@ from kbbatch.models import providers_used
 from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
-    clip_name_note,
     folder_identity,
     moved_to,
+    name_job,
     output_names,
     remove_partial_clips,
     replaced_clip_note,
@@ -57,7 +57,6 @@ from kbbatch.pipeline import (
     apply_entry,
     check_photo_size,
     clip_fingerprints,
-    depth_images_missing,
     joined_notes,
     plan_photo,
     progress_bar,
@@ -740,10 +739,6 @@ def excluded_result(journal, source: Path, output_folder: Path) -> ClipResult:
     return result
 
 
-ADOPTED_NOTE = ("{name}: made by kbbatch from this photo with these settings (its mark says "
-                "so) but missing from the journal; kept, and recorded")
-
-
 def start_job(journal, source: Path, output_folder: Path, preferred: str, preset: Preset,
               options: ClipOptions, entry: ManifestEntry | None, force: bool
               ) -> ClipJob | ClipResult:
@@ -769,46 +764,6 @@ def start_job(journal, source: Path, output_folder: Path, preferred: str, preset
         # a full disk: not the photo's fault, and the photos after it would fail too
         return ClipResult(str(source), None, "no_space" if error.disk_full else "failed", 0.0,
                           error=f"{source}: {error}", full_folder=str(output_folder))
-
-
-def name_job(journal, source: Path, output_folder: Path, preferred: str,
-             entry: ManifestEntry | None, fingerprint: str, content: str,
-             settings: tuple[str, ...], save_depth: bool, force: bool = False
-             ) -> ClipJob | ClipResult:
-    """The journal's part of starting a clip, one rule for the batch and the daemon: its name,
-    whether it is up to date ("skipped"), whether this user may replace the file of that name
-    ("failed", before any render), else the job, started. JournalError passes through (the
-    batch fails the photo, the daemon pauses and retries)."""
-    from kbbatch.images import capture_time, depth_image_names
-
-    adopted = journal.adopt_marked_clip(source, fingerprint, settings, content,
-                                        output_folder, preferred)
-    previous = journal.job_of(source, content)
-    taken = capture_time(source)
-    if previous is not None and previous.of_another_folder(content, taken):
-        journal.set_aside(source)  # its clip stays that photo's, under its name
-        previous = journal.job_of(source, content)  # this directory's own, set aside
-    name = journal.clip_name(source, content, preferred, output_folder, save_depth)
-    output = output_folder / name
-    up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
-    if not force and up_to_date and not (save_depth and depth_images_missing(output)):
-        journal.place(source, content, taken)
-        return ClipResult(str(source), str(output), "skipped", 0.0,
-                          note=ADOPTED_NOTE.format(name=name) if adopted else None)
-    name = journal.name_to_make(source, content, preferred, output_folder, save_depth, name)
-    output = output_folder / name
-    # its depth images too: replaced with --save-depth, removed without it
-    refusal = next(filter(None, map(unreplaceable, [output, *(
-        output.with_name(name) for name in depth_image_names(output.name))])), None)
-    if refusal:  # before the render, and the clip's record left as it is
-        return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {refusal}")
-    journal.start(source, fingerprint, settings[0], name, content, taken)
-    replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
-    kept = previous is not None and previous.output == name  # its own name: nothing to note
-    name_note = None if kept else clip_name_note(source, output_folder, preferred, name,
-                                                  content, settings)
-    return ClipJob(source, output, entry, name_note, replaces_other_bytes=replaces,
-                   content=content)
 
 
 def removed_result(source: Path) -> ClipResult:

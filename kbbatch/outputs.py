@@ -1,4 +1,5 @@
-"""The output folder, as every runner shares it: clip names, writability, partial clips."""
+"""The output folder, as every runner shares it: clip names (and a clip's start in the
+journal), writability, partial clips."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from collections import Counter
 from pathlib import Path
 
 from kbbatch.images import fitted_name
-from kbbatch.pipeline import CLIP_SUFFIX
+from kbbatch.manifest import ManifestEntry
+from kbbatch.pipeline import CLIP_SUFFIX, ClipJob, ClipResult, depth_images_missing
 
 log = logging.getLogger(__name__)
 
@@ -134,3 +136,47 @@ def clip_name_note(source: Path, folder: Path, preferred: str, name: str, conten
                 f"place); this one is named by its content: {name}")
     return (f"{source.name}: {preferred} (or a depth map beside it) is another photo's or a "
             f"file kbbatch did not write; this one is named by its content: {name}")
+
+
+ADOPTED_NOTE = ("{name}: made by kbbatch from this photo with these settings (its mark says "
+                "so) but missing from the journal; kept, and recorded")
+
+
+def name_job(journal, source: Path, output_folder: Path, preferred: str,
+             entry: ManifestEntry | None, fingerprint: str, content: str,
+             settings: tuple[str, ...], save_depth: bool, force: bool = False
+             ) -> ClipJob | ClipResult:
+    """The journal's part of starting a clip, one rule for the batch and the daemon: its name,
+    whether it is up to date ("skipped"), whether this user may replace the file of that name
+    ("failed", before any render), else the job, started. JournalError passes through (the
+    batch fails the photo, the daemon pauses and retries)."""
+    from kbbatch.images import capture_time, depth_image_names
+
+    adopted = journal.adopt_marked_clip(source, fingerprint, settings, content,
+                                        output_folder, preferred)
+    previous = journal.job_of(source, content)
+    taken = capture_time(source)
+    if previous is not None and previous.of_another_folder(content, taken):
+        journal.set_aside(source)  # its clip stays that photo's, under its name
+        previous = journal.job_of(source, content)  # this directory's own, set aside
+    name = journal.clip_name(source, content, preferred, output_folder, save_depth)
+    output = output_folder / name
+    up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
+    if not force and up_to_date and not (save_depth and depth_images_missing(output)):
+        journal.place(source, content, taken)
+        return ClipResult(str(source), str(output), "skipped", 0.0,
+                          note=ADOPTED_NOTE.format(name=name) if adopted else None)
+    name = journal.name_to_make(source, content, preferred, output_folder, save_depth, name)
+    output = output_folder / name
+    # its depth images too: replaced with --save-depth, removed without it
+    refusal = next(filter(None, map(unreplaceable, [output, *(
+        output.with_name(name) for name in depth_image_names(output.name))])), None)
+    if refusal:  # before the render, and the clip's record left as it is
+        return ClipResult(str(source), None, "failed", 0.0, error=f"{source}: {refusal}")
+    journal.start(source, fingerprint, settings[0], name, content, taken)
+    replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
+    kept = previous is not None and previous.output == name  # its own name: nothing to note
+    name_note = None if kept else clip_name_note(source, output_folder, preferred, name,
+                                                  content, settings)
+    return ClipJob(source, output, entry, name_note, replaces_other_bytes=replaces,
+                   content=content)

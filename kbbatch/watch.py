@@ -28,7 +28,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from kbbatch import models
-from kbbatch.batch import name_job
 from kbbatch.depth.file import find_depth_file
 from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
@@ -67,6 +66,7 @@ from kbbatch.outputs import (
     OutputFolderError,
     check_writable,
     folder_identity,
+    name_job,
     output_names,
     remove_partial_clips,
     replaced_clip_note,
