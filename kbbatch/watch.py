@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import glob
 import json
 import logging
 import os
@@ -70,6 +71,7 @@ from kbbatch.outputs import (
     output_names,
     remove_partial_clips,
     replaced_clip_note,
+    unreplaceable,
 )
 from kbbatch.pipeline import (
     ClipOptions,
@@ -1194,12 +1196,31 @@ def note_inbox(outbox: Path, inbox: Path, manifest: Path | None) -> None:
     """Written at the daemon's start (see INBOX_NOTE), with the manifest it follows (whose
     excluded photos and depth maps wait for nothing); a failure to write it costs only that."""
     note = {"inbox": str(inbox)} | ({"manifest": str(manifest.absolute())} if manifest else {})
+    path = outbox / INBOX_NOTE
+    if unreplaceable(path):  # another user's daemon's, in a sticky folder: one of this user's
+        path = outbox / f"{INBOX_NOTE.removesuffix('.json')}.{os.geteuid()}.json"
     try:
-        with atomic_output(outbox / INBOX_NOTE, ".json", make_folder=False) as temp_path:
+        with atomic_output(path, ".json", make_folder=False) as temp_path:
             temp_path.write_text(json.dumps(note), encoding="utf-8")
     except OSError as error:
         log.warning("%s: cannot be written (%s); `kbbatch status` will not count the photos "
-                    "waiting in the inbox", outbox / INBOX_NOTE, error.strerror or error)
+                    "waiting in the inbox", path, error.strerror or error)
+
+
+def latest_inbox_note(outbox: Path) -> Path:
+    """The note of the daemon that started last here: the users' notes of a sticky folder
+    (note_inbox) beside the first one, which read alone counted the first user's inbox for a
+    colleague's daemon."""
+    stem = INBOX_NOTE.removesuffix(".json")
+    notes = [outbox / INBOX_NOTE, *outbox.glob(f"{glob.escape(stem)}.*.json")]
+
+    def written_ns(note: Path) -> int:
+        try:
+            return note.stat().st_mtime_ns
+        except OSError:
+            return -1
+
+    return max(notes, key=written_ns)
 
 
 MISSING_NAMED_MAX = 3
@@ -1227,7 +1248,7 @@ def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] 
     """The inbox of the daemon that writes into outbox, and its photos no job has been
     started for yet: they waited there while `kbbatch status` said "queued 0"."""
     try:
-        note = outbox / INBOX_NOTE
+        note = latest_inbox_note(outbox)
         if note.stat().st_size > MAX_NOTE_BYTES:
             return None
         noted = json.loads(note.read_text(encoding="utf-8"))

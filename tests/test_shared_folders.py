@@ -365,3 +365,27 @@ def test_the_daemon_refuses_another_users_clip_in_a_sticky_outbox_before_the_ren
     journal = Journal(out, read_only=True)
     assert journal.counts()["done"] == 1
     journal.close()
+
+
+def test_status_counts_the_inbox_of_the_daemon_that_started_last_in_a_sticky_outbox(shared):
+    """A colleague's daemon could not replace the first user's note of its inbox in a sticky
+    outbox: `kbbatch status` went on counting the first user's inbox, not the one in use."""
+    from PIL import Image
+
+    from kbbatch.watch import note_inbox, status_lines
+
+    out, first, second = shared / "out", shared / "first", shared / "second"
+    for folder in (out, first, second):
+        folder.mkdir()
+        folder.chmod(0o1777 if folder == out else 0o777)
+    Image.new("RGB", (64, 48)).save(first / "root.jpg")
+    for name in ("b1.jpg", "b2.jpg"):
+        Image.new("RGB", (64, 48)).save(second / name)
+    Journal(out).close()
+    (out / JOURNAL_NAME).chmod(0o666)
+    note_inbox(out, first, None)
+    assert f"WAITING 1 photo(s) in the inbox {first}" in "\n".join(status_lines(out))
+    assert as_other_user(lambda: repr(note_inbox(out, second, None))) == "None"
+    assert f"WAITING 2 photo(s) in the inbox {second}" in "\n".join(status_lines(out))
+    note_inbox(out, first, None)  # the first user's daemon again
+    assert f"WAITING 1 photo(s) in the inbox {first}" in "\n".join(status_lines(out))
