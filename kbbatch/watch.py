@@ -603,6 +603,11 @@ class JobRunner:
             except BrokenProcessPool:  # broke since the last look: its jobs come back below
                 self.journal.finish(path, "queued", 0.0, "worker pool broken; retrying")
                 self.requeue(path, True)
+                if not self.in_flight:  # an idle worker died: no job's result will say so,
+                    # and the photo was offered to the broken pool again and again
+                    log.warning("a worker process died while idle (out of memory, or "
+                                "killed); pool rebuilt")
+                    self.recover_from_worker_death()
                 return
             self.in_flight[future] = InFlight(path, fingerprint, job.output.name, renamed,
                                               job.replaces_other_bytes, content)

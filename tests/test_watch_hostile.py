@@ -1201,3 +1201,26 @@ def test_a_daemon_killed_while_it_remakes_an_edited_photo_makes_it_again(tmp_pat
     subprocess.run([*CLI, str(reference), "-o", str(reference / "out"), "--preset", str(preset),
                     "--depth", "ramp", "--planner", "center", "--quiet"], check=True)
     assert (outbox / "a.mp4").read_bytes() == (reference / "out" / "a.mp4").read_bytes()
+
+
+def test_an_idle_worker_killed_is_replaced_when_the_next_photo_comes(tmp_path):
+    """A worker killed while idle (the OOM killer, an admin): the next photo was offered to
+    the broken pool five times a second for ever ("start b.jpg", "worker pool broken;
+    retrying"), and no clip was made again."""
+    inbox, outbox, preset = folders(tmp_path)
+    drop(inbox, "a.jpg", photo_bytes(tmp_path, 1))
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: finished_jobs(outbox) == 1, 300, "the first clip")
+        wait_for(lambda: worker_pids(daemon), 60, "an idle worker")
+        for pid in worker_pids(daemon):
+            os.kill(pid, signal.SIGKILL)
+        time.sleep(1.0)
+        drop(inbox, "b.jpg", photo_bytes(tmp_path, 2))
+        wait_for(lambda: finished_jobs(outbox) == 2, 300, "the clip after the death")
+        assert daemon.poll() is None
+    finally:
+        assert stop(daemon) == 0
+    assert clips_in(outbox) == ["a.mp4", "b.mp4"]
+    log = daemon_log(tmp_path)
+    assert "died while idle" in log and log.count("start b.jpg") <= 2, log
