@@ -568,8 +568,8 @@ def free_bytes(folder: Path) -> int | None:
         return None
 
 
-def disk_full_message(folder: Path, source: Path, reason: str | None = None) -> str:
-    free = free_bytes(folder)
+def disk_full_message(folder: Path, source: Path, reason: str | None, free: int | None
+                      ) -> str:
     room = "" if free is None else f" ({free // 1024} KB free)"
     why = f"{reason}; " if reason else ""
     return (f"{folder}: its disk is full{room}; the clip of {source.name} could not be written "

@@ -48,6 +48,7 @@ from kbbatch.images import (
     ImageReadError,
     atomic_output,
     disk_full_message,
+    free_bytes,
     is_disk_full,
     read_photo,
 )
@@ -127,8 +128,18 @@ class ClipResult:
     risk: dict | None = None  # risk measures and the parallax relief chosen (kbbatch.risk)
     device: str | None = None  # where the frames were rendered
     full_folder: str | None = None  # "no_space": the folder whose disk had no room
+    free_bytes_when_full: int | None = None  # "no_space": the room that disk had then
     preset: str | None = None  # what it was made with: a manifest entry's own, or the run's
     content: str | None = None  # sha256 of the photo's bytes it was made from
+
+    def found_disk_full(self, folder: Path, reason: str | None) -> None:
+        """Its clip's disk (folder's) had no room: queued, not failed. The room left is kept
+        as it was then: the daemon waits for more than that, and measured once the result was
+        read (after a pause), it counted room a user had made meanwhile as the full disk's."""
+        self.status, self.full_folder = "no_space", str(folder)
+        self.free_bytes_when_full = free_bytes(folder)
+        self.error = disk_full_message(folder, Path(self.source), reason,
+                                       self.free_bytes_when_full)
 
 
 @dataclass(frozen=True)
@@ -759,8 +770,7 @@ def make_clip(
         if is_disk_full(error):
             full = Path(error.filename) if error.filename else output.parent
             full = full if full.is_dir() else full.parent
-            result.status, result.full_folder = "no_space", str(full)
-            result.error = disk_full_message(full, source, error.strerror)
+            result.found_disk_full(full, error.strerror)
         else:
             result.error = f"{source}: {type(error).__name__}: {error}"
             result.detail = traceback.format_exc()

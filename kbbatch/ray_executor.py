@@ -37,7 +37,6 @@ from kbbatch.fingerprint import file_sha256
 from kbbatch.images import (
     atomic_output,
     depth_image_names,
-    disk_full_message,
     is_disk_full,
     is_users_file,
 )
@@ -282,8 +281,7 @@ def write_outcome(job: ClipJob, outcome: WorkerOutcome) -> ClipResult:
     except OSError as error:
         result.output = None
         if is_disk_full(error):
-            result.status, result.full_folder = "no_space", str(job.output.parent)
-            result.error = disk_full_message(job.output.parent, job.source, error.strerror)
+            result.found_disk_full(job.output.parent, error.strerror)
         else:
             result.status = "failed"
             result.error = (f"{job.output}: the clip could not be written "

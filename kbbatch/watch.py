@@ -781,6 +781,8 @@ class JobRunner:
         after SPACE_RETRY_S."""
         folder = Path(result.full_folder or self.settings.outbox)
         free = free_bytes(folder)
+        if free is not None and result.free_bytes_when_full is not None:
+            free = min(free, result.free_bytes_when_full)  # room made since then counts
         if self.space_wanted is None:
             log.warning("%s; no photo is taken until %d MB more are free there", result.error,
                         SPACE_TO_RESUME_BYTES >> 20)

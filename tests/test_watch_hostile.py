@@ -1224,3 +1224,35 @@ def test_an_idle_worker_killed_is_replaced_when_the_next_photo_comes(tmp_path):
     assert clips_in(outbox) == ["a.mp4", "b.mp4"]
     log = daemon_log(tmp_path)
     assert "died while idle" in log and log.count("start b.jpg") <= 2, log
+
+
+def test_room_made_while_the_daemon_paused_counts_towards_the_room_it_waits_for(tmp_path):
+    """A clip found the disk full (0 KB free) while the daemon paused on its journal; the user
+    freed space then, as the log invited. The daemon read the result after the pause and
+    waited for 1 MB more than the room already made: stuck, with megabytes free."""
+    from kbbatch.images import free_bytes
+    from kbbatch.pipeline import ClipOptions, ClipResult
+    from kbbatch.presets import load_preset
+    from kbbatch.watch import SPACE_TO_RESUME_BYTES, JobRunner, WatchSettings
+
+    inbox, outbox = tmp_path / "in", tmp_path / "out"
+    inbox.mkdir()
+    outbox.mkdir()
+    journal = Journal(outbox)
+    runner = JobRunner(WatchSettings(inbox, outbox, load_preset("preview"), ClipOptions()),
+                       journal, False, tmp_path / "reports", lambda path, renamed: None)
+    result = ClipResult(str(inbox / "a.jpg"), None, "queued", 0.0)
+    free_now = free_bytes(outbox)
+    assert free_now is not None and free_now > 2 * SPACE_TO_RESUME_BYTES
+    full_then = free_now - 2 * SPACE_TO_RESUME_BYTES  # 2 MB were made since
+    result.found_disk_full(outbox, "No space left on device")
+    assert result.status == "no_space" and result.full_folder == str(outbox)
+    assert result.error.startswith(f"{outbox}: its disk is full (")
+    assert result.free_bytes_when_full is not None
+    result.free_bytes_when_full = full_then
+    runner.wait_for_space(result)
+    assert runner.has_space(), "2 MB more than when the clip failed are free"
+    result.free_bytes_when_full = free_now  # no room made since: it waits
+    runner.wait_for_space(result)
+    assert not runner.has_space()
+    journal.close()
