@@ -95,8 +95,9 @@ def check_writable(folder: Path) -> None:
 
 
 def remove_partial_clips(folder: Path) -> list[Path]:
-    """Temporary clips (`.NAME.XXXX.part.mp4`) left by a killed run; call with the folder
-    locked, so that no live run's file is taken."""
+    """Temporary files (`.NAME.XXXX.part.mp4`: a clip, or a photo's copy to done/ on another
+    disk) left by a killed run; call with the folder locked, so that no live run's file is
+    taken."""
     from kbbatch.images import TEMP_NAME
 
     removed = []

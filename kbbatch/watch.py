@@ -222,7 +222,10 @@ def move_photo(path: Path, destination: Path) -> None:
             # copied into done/ and could not be removed, a copy more at every start.
             if error.errno != errno.EXDEV:
                 raise
-            shutil.copy2(path, destination)
+            # under a temporary name until complete: a full disk, or a kill, left a truncated
+            # copy under the photo's own name
+            with atomic_output(destination, destination.suffix, make_folder=False) as temp:
+                shutil.copy2(path, temp)
             try:
                 path.unlink()
             except OSError:
@@ -493,6 +496,11 @@ class JobRunner:
         s = self.settings
         for partial in remove_partial_clips(s.outbox):
             log.info("removed partial file %s from an interrupted run", partial.name)
+        for folder in (s.inbox / DONE_FOLDER, s.inbox / FAILED_FOLDER):
+            if folder.is_dir():  # a photo's copy to another disk, interrupted
+                for partial in remove_partial_clips(folder):
+                    log.info("removed partial copy %s/%s from an interrupted run", folder.name,
+                             partial.name)
         for scratch in remove_stale_scratch():
             log.info("removed %s, left by a killed worker", scratch)
         for job in self.journal.jobs("running"):

@@ -1256,3 +1256,41 @@ def test_room_made_while_the_daemon_paused_counts_towards_the_room_it_waits_for(
     runner.wait_for_space(result)
     assert not runner.has_space()
     journal.close()
+
+
+def test_a_photo_moved_to_a_full_disk_leaves_no_truncated_copy_under_its_name(
+        tmp_path, tiny_mount):  # noqa: F811
+    """done/ on another disk (a link to it) that cannot take the photo: the move said so and
+    kept the photo in the inbox, but left a truncated done/x.jpg, which the next start
+    took for a photo of that name (the real one went to x.1.jpg beside it)."""
+    from kbbatch.watch import DONE_FOLDER, move_photo
+
+    inbox = tmp_path / "in"
+    inbox.mkdir()
+    photo = inbox / "x.jpg"
+    photo.write_bytes(os.urandom(12 << 20))  # more than the 8 MB disk holds
+    (inbox / DONE_FOLDER).symlink_to(tiny_mount)
+    with pytest.raises(OSError) as raised:
+        move_photo(photo, inbox / DONE_FOLDER / "x.jpg")
+    assert raised.value.errno == 28  # ENOSPC
+    assert list(tiny_mount.iterdir()) == [], "no copy, whole or partial"
+    assert photo.stat().st_size == 12 << 20
+    small = inbox / "small.jpg"
+    small.write_bytes(b"a small photo")
+    move_photo(small, inbox / DONE_FOLDER / "small.jpg")
+    assert (tiny_mount / "small.jpg").read_bytes() == b"a small photo"
+    assert not small.exists() and [p.name for p in tiny_mount.iterdir()] == ["small.jpg"]
+
+
+def test_a_copy_to_done_cut_by_a_kill_is_removed_at_the_next_start(tmp_path):
+    inbox, outbox, preset = folders(tmp_path)
+    (inbox / "done").mkdir()
+    partial = inbox / "done" / ".x.k3j9x2qa.part.jpg"  # atomic_output's name for done/x.jpg
+    partial.write_bytes(b"half a photo")
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: "watching" in daemon_log(tmp_path), 120, "the daemon")
+    finally:
+        assert stop(daemon) == 0
+    assert not partial.exists()
+    assert "removed partial copy done/.x.k3j9x2qa.part.jpg" in daemon_log(tmp_path)
