@@ -688,8 +688,11 @@ def run_folder(
                                         f"stopped there (the clips made before are {where})")
             report.unwritten = report.write(output_folder)
             written = report_path(output_folder)
-            if report.unwritten and written is not None and written.exists():
-                # the one written at the start: the run never finished
+            if (report.unwritten and written is not None and written.exists()
+                    and not (report.stopped_by or report.not_started)):
+                # the one written at the start says the run never finished, and it did; a run
+                # stopped (by a full disk, most often what failed this write) keeps it, which
+                # says so: removed, `status` had no word of the photos not started
                 with contextlib.suppress(OSError):
                     written.unlink()
             lock.release()

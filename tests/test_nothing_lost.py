@@ -416,6 +416,32 @@ def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finishe
     assert last_run_lines(out) == []
 
 
+def test_a_stopped_run_whose_final_report_fails_keeps_the_one_saying_it_did_not_finish(
+        tmp_path, quick_preset, monkeypatch):
+    """A run stopped by a full disk, whose final report the disk could not take either: the
+    report written at the start was removed too, and `kbbatch status` had no word of the
+    photos the run never started. (The stop here is --fail-fast's, and the final write fails
+    by hand, as above.)"""
+    from kbbatch.batch import RunReport, last_run_lines
+
+    folder, out = tmp_path / "in", tmp_path / "out"
+    (folder / "a.jpg").parent.mkdir(parents=True)
+    (folder / "a.jpg").write_bytes(b"not a photo")
+    photo(folder / "b.jpg", seed=1)
+    real_write = RunReport.write
+
+    def write_then_fail(report, output_folder):
+        if report.finished_at is None:
+            return real_write(report, output_folder)
+        return f"{output_folder / 'kbbatch-report.json'}: report could not be written (full)"
+
+    monkeypatch.setattr(RunReport, "write", write_then_fail)
+    report = run_folder(folder, out, quick_preset, FAST, False, fail_fast=True)
+    assert report.unwritten and report.not_started == [str(folder / "b.jpg")]
+    [line] = last_run_lines(out)
+    assert "did not finish" in line and "run again to finish" in line, line
+
+
 def test_a_skipped_clip_keeps_what_the_report_said_of_it(tmp_path, quick_preset):
     """Each re-run's report gave the clips it skipped no crops, depth backend or preset: a tool
     reading the report lost them at the first re-run."""
