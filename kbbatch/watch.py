@@ -19,6 +19,7 @@ import os
 import queue
 import shutil
 import signal
+import stat
 import tempfile
 import threading
 import time
@@ -149,6 +150,16 @@ again this long after."""
 MAX_NOTE_BYTES = 1 << 20
 """A file larger than this is not read as one of the daemon's own (a failure report, the inbox
 note): someone else's file under such a name."""
+
+
+def read_note(path: Path) -> object:
+    """The JSON of one of the daemon's own small files (a failure report, the inbox note).
+    Only a regular file of at most MAX_NOTE_BYTES, not a link, is read: a named pipe under
+    the name hung `kbbatch status`, and a link to /dev/zero filled the memory."""
+    facts = path.lstat()
+    if not stat.S_ISREG(facts.st_mode) or facts.st_size > MAX_NOTE_BYTES:
+        raise ValueError(f"{path}: not one of kbbatch's notes")
+    return json.loads(path.read_text(encoding="utf-8"))
 
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
@@ -1002,8 +1013,7 @@ class JobRunner:
         reports = []
         for report in self.failure_reports.glob("*.error.json"):
             try:
-                if report.stat().st_size <= MAX_NOTE_BYTES and json.loads(
-                        report.read_text(encoding="utf-8")).get("photo") == str(photo):
+                if read_note(report).get("photo") == str(photo):
                     reports.append(report)
             except (OSError, ValueError, AttributeError):
                 continue  # not one of ours
@@ -1231,7 +1241,7 @@ def latest_inbox_note(outbox: Path) -> Path:
 
     def written_ns(note: Path) -> int:
         try:
-            return note.stat().st_mtime_ns
+            return note.lstat().st_mtime_ns
         except OSError:
             return -1
 
@@ -1263,10 +1273,7 @@ def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] 
     """The inbox of the daemon that writes into outbox, and its photos no job has been
     started for yet: they waited there while `kbbatch status` said "queued 0"."""
     try:
-        note = latest_inbox_note(outbox)
-        if note.stat().st_size > MAX_NOTE_BYTES:
-            return None
-        noted = json.loads(note.read_text(encoding="utf-8"))
+        noted = read_note(latest_inbox_note(outbox))
         inbox = Path(noted["inbox"])
         photos = scan_folder(inbox).photos if inbox.is_dir() else []
         manifest_path = noted.get("manifest")

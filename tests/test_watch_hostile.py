@@ -1294,3 +1294,21 @@ def test_a_copy_to_done_cut_by_a_kill_is_removed_at_the_next_start(tmp_path):
         assert stop(daemon) == 0
     assert not partial.exists()
     assert "removed partial copy done/.x.k3j9x2qa.part.jpg" in daemon_log(tmp_path)
+
+
+@pytest.mark.parametrize("kind", ["named pipe", "link to /dev/zero"])
+def test_status_passes_over_an_inbox_note_that_is_no_file_of_ours(tmp_path, kind):
+    """Under the inbox note's name, a named pipe hung `kbbatch status` (until killed), and a
+    link to /dev/zero filled the memory (6.9 GB in 20 s)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    Journal(out).close()
+    note = out / ".kbbatch-inbox.json"
+    if kind == "named pipe":
+        os.mkfifo(note)
+    else:
+        note.symlink_to("/dev/zero")
+    run = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True,
+                         timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("queued 0, running 0, done 0, failed 0"), run.stdout
