@@ -147,6 +147,9 @@ SPACE_RETRY_S = 60.0
 """After a full disk the daemon cannot measure (a Ray node's temporary folder), photos are taken
 again this long after."""
 
+MENTIONED_RECHECK_S = 2.0
+"""How often the inbox's entries said to be no photo (a broken link) are looked at again."""
+
 MAX_NOTE_BYTES = 1 << 20
 """A file larger than this is not read as one of the daemon's own (a failure report, the inbox
 note): someone else's file under such a name."""
@@ -318,6 +321,7 @@ class InboxTracker:
         self.events: queue.Queue[tuple[Path, bool]] = queue.Queue()  # filled by the observer
         self.arrivals: dict[Path, Arrival] = {}
         self.mentioned: set[Path] = set()  # subfolders and broken links already logged
+        self.mentioned_checked_at = 0.0  # time.monotonic() of the last recheck_mentioned
         self.held: set[Path] = set()  # photos the manifest excludes or names as depth maps
         self.removals: queue.Queue[Path] = queue.Queue()  # filled by the observer
         self.removed: set[Path] = set()  # taken photos deleted since (their clips in flight)
@@ -347,7 +351,22 @@ class InboxTracker:
         if path in self.arrivals:
             self.forget(path)
 
+    def recheck_mentioned(self) -> None:
+        """Entries said once to be no photo: a link whose target appeared since is taken (no
+        event in the inbox tells of it: it waited for a restart), and one removed is forgotten
+        (a link made again under its name was not said again)."""
+        if time.monotonic() < self.mentioned_checked_at + MENTIONED_RECHECK_S:
+            return
+        self.mentioned_checked_at = time.monotonic()
+        for path in list(self.mentioned):
+            if not os.path.lexists(path):
+                self.mentioned.discard(path)
+            elif path.is_symlink() and path.is_file():
+                self.mentioned.discard(path)
+                self.notice(path)
+
     def collect_events(self) -> None:
+        self.recheck_mentioned()
         while True:
             try:
                 self.removed.add(self.removals.get_nowait())

@@ -1312,3 +1312,30 @@ def test_status_passes_over_an_inbox_note_that_is_no_file_of_ours(tmp_path, kind
                          timeout=60)
     assert run.returncode == 0, run.stderr
     assert run.stdout.startswith("queued 0, running 0, done 0, failed 0"), run.stdout
+
+
+def test_a_link_whose_photo_appears_later_is_taken_and_one_made_again_is_said_again(tmp_path):
+    """Watched by inotify, a link in the inbox whose target was written later was never taken
+    (nothing in the inbox changes then) until a restart; and a link removed and made again,
+    broken, was not said again."""
+    inbox, outbox, preset = folders(tmp_path)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (inbox / "later.jpg").symlink_to(elsewhere / "later.jpg")
+    daemon = start_daemon(inbox, outbox, preset)
+    try:
+        wait_for(lambda: "later.jpg: broken symbolic link" in daemon_log(tmp_path), 120,
+                 "the first warning")
+        (inbox / "again.jpg").symlink_to(elsewhere / "nowhere.jpg")
+        wait_for(lambda: "again.jpg: broken symbolic link" in daemon_log(tmp_path), 60,
+                 "the warning of the second link")
+        (inbox / "again.jpg").unlink()
+        time.sleep(3.0)  # longer than a recheck of the entries said
+        (inbox / "again.jpg").symlink_to(elsewhere / "still-nowhere.jpg")
+        Image.fromarray(textured_image(180, 320, seed=3)).save(elsewhere / "later.jpg")
+        wait_for(lambda: clips_in(outbox) == ["later.mp4"], 120, "the linked photo's clip")
+        wait_for(lambda: daemon_log(tmp_path).count("again.jpg: broken symbolic link") == 2,
+                 60, "the link made again, said again")
+    finally:
+        assert stop(daemon) == 0
+    assert "ERROR" not in daemon_log(tmp_path)
