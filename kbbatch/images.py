@@ -335,8 +335,10 @@ def capture_time(path: Path) -> str | None:
     """When the camera took the photo (EXIF DateTimeOriginal), None where the file does not
     say: an edit keeps it, another card's photo of the same name does not share it."""
     try:
-        with Image.open(path) as image:
-            taken = image.getexif().get_ifd(EXIF_IFD)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # said with the file's name when it is read
+            with Image.open(path) as image:
+                taken = image.getexif().get_ifd(EXIF_IFD)
     except Exception:  # a header Pillow cannot read (or a bomb) says nothing of it
         return None
     when = taken.get(EXIF_TAKEN)
@@ -350,11 +352,13 @@ def upright_size(path: Path) -> tuple[int, int]:
     `plan` checking kept crops against each photo's size decoded every photo whole. (A JPEG
     so large that it is decoded smaller, or a file Pillow cannot open, is read.)"""
     try:
-        with Image.open(path) as image:
-            width, height = image.size
-            if width * height <= MAX_SOURCE_PIXELS:
-                turned = image.getexif().get(EXIF_ORIENTATION) in TURNED_ORIENTATIONS
-                return (height, width) if turned else (width, height)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # said with the file's name when it is read
+            with Image.open(path) as image:
+                width, height = image.size
+                if width * height <= MAX_SOURCE_PIXELS:
+                    turned = image.getexif().get(EXIF_ORIENTATION) in TURNED_ORIENTATIONS
+                    return (height, width) if turned else (width, height)
     except (OSError, ValueError, SyntaxError, UnidentifiedImageError):
         pass
     height, width = read_image(path).shape[:2]

@@ -206,6 +206,37 @@ def test_a_decoder_warning_names_the_photo(tmp_path, caplog):
                for r in caplog.records), caplog.text
 
 
+def test_reading_a_damaged_exif_for_its_time_or_size_prints_no_unnamed_warning(tmp_path):
+    """The journal's look at a photo's capture time (and `plan`'s at its size) let Pillow's
+    warnings of a damaged EXIF block out raw, with no photo named, before the read that names
+    it."""
+    import warnings
+
+    from kbbatch.images import capture_time, upright_size
+
+    path = tmp_path / "holiday.jpg"
+    Image.fromarray(np.full((40, 60, 3), 100, np.uint8)).save(path)
+    data = path.read_bytes()
+    exif = (b"Exif\x00\x00II*\x00\x08\x00\x00\x00\x05\x00"
+            b"\x0f\x01\x02\x00\xff\x00\x00\x00\x40\x00\x00\x00")  # a tag past the end
+    path.write_bytes(data[:2] + b"\xff\xe1" + (len(exif) + 2).to_bytes(2, "big") + exif
+                     + data[2:])
+    exif_time = Image.Exif()
+    exif_time.get_ifd(0x8769)[0x9003] = "2024:05:01 10:00:00"  # DateTimeOriginal
+    timed = tmp_path / "timed.jpg"
+    Image.fromarray(np.full((40, 60, 3), 100, np.uint8)).save(timed, exif=exif_time)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # raised, a warning made capture_time say None
+        assert capture_time(timed) == "2024:05:01 10:00:00"
+        assert capture_time(path) is None
+        assert upright_size(path) == (60, 40)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        capture_time(path)
+        upright_size(path)
+    assert caught == []
+
+
 def test_a_float_image_of_zero_to_one_is_not_read_as_black(tmp_path):
     """0-1 floats (a 32-bit TIFF from a raw converter) were divided by 255: a black clip."""
     ramp = np.tile(np.linspace(0.0, 1.0, 256, dtype=np.float32), (16, 1))
