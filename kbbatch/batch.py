@@ -267,15 +267,20 @@ def _last_report(output_folder: Path) -> dict:
 
 
 def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
-    """The clips the folder's last report describes as made (or carried), by source and clip
-    name (the folder may have been renamed since)."""
+    """The clips the folder's last report describes as made (or carried), by clip name and
+    the sha256 of the photo's bytes, and by clip name and source (reports of versions that
+    kept no sha256): keyed by source alone, a photo folder renamed or moved lost every
+    skipped clip's crops, preset and depth backend from the reports, for good."""
     report = _last_report(output_folder)
     clips = report.get("made_before"), report.get("clips")  # the run's own last
     try:
-        return {(clip["source"], Path(clip.get("output") or "").name): clip
-                for listed in clips for clip in listed or ()
-                if isinstance(clip, dict) and clip.get("status") in ("done", "skipped")
-                and clip.get("plan")}
+        described = [clip for listed in clips for clip in listed or ()
+                     if isinstance(clip, dict) and clip.get("status") in ("done", "skipped")
+                     and clip.get("plan")]
+        return ({(Path(clip.get("output") or "").name, str(clip["source"])): clip
+                 for clip in described}
+                | {(Path(clip.get("output") or "").name, str(clip["content"])): clip
+                   for clip in described if clip.get("content")})
     except (KeyError, TypeError):
         return {}
 
@@ -283,7 +288,9 @@ def _clips_of_last_report(output_folder: Path) -> dict[tuple[str, str], dict]:
 def _as_made_before(result: ClipResult, made_before: dict[tuple[str, str], dict]
                     ) -> ClipResult:
     """A skipped clip with what the report of the run that made it said of it."""
-    before = made_before.get((result.source, Path(result.output or "").name))
+    name = Path(result.output or "").name
+    before = made_before.get((name, str(result.content))) or made_before.get(
+        (name, result.source))
     if result.status != "skipped" or before is None:
         return result
     return replace(result, **{name: before.get(name) for name in CARRIED_FIELDS

@@ -166,7 +166,8 @@ def name_job(journal, source: Path, output_folder: Path, preferred: str,
     if not force and up_to_date and not (save_depth and depth_images_missing(output)):
         journal.place(source, content, taken)
         return ClipResult(str(source), str(output), "skipped", 0.0,
-                          note=ADOPTED_NOTE.format(name=name) if adopted else None)
+                          note=ADOPTED_NOTE.format(name=name) if adopted else None,
+                          content=content)
     name = journal.name_to_make(source, content, preferred, output_folder, save_depth, name)
     output = output_folder / name
     # its depth images too: replaced with --save-depth, removed without it
