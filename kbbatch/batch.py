@@ -604,6 +604,8 @@ def run_folder(
 
     def jobs() -> Iterator[ClipJob]:
         """The photos to make, each started in the journal as the executor takes it."""
+        if fail_fast and any(result.status == "failed" for result in results):
+            return  # a broken link, a pipe, a manifest's missing photo: failed already
         for photo in scan.photos:
             if folder_identity(output_folder) != identity:
                 stop["by"] = FOLDER_GONE

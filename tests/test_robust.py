@@ -148,6 +148,19 @@ def test_fail_fast_stops_at_the_first_failure(tmp_path, quick_preset):
     assert "ended at its first failure (--fail-fast)" in line and "1 photo(s) not started" in line
 
 
+def test_fail_fast_stops_at_a_failure_found_before_any_photo(tmp_path, quick_preset):
+    """A broken link or a named pipe in the folder fails before any photo is made: --fail-fast
+    went on and made every photo ("5 clip(s) made, 2 failed")."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "00_link.jpg").symlink_to(tmp_path / "nowhere.jpg")
+    Image.fromarray(textured_image(180, 320)).save(folder / "b.jpg")
+    report = run_folder(folder, tmp_path / "out", quick_preset, FAST, False, fail_fast=True)
+    assert [r.status for r in report.results] == ["failed"]
+    assert report.not_started == [str(folder / "b.jpg")]
+    assert not visible_clips(tmp_path / "out")
+
+
 def test_a_20000_px_jpeg_is_decoded_small_and_a_png_bomb_is_refused(tmp_path):
     Image.new("L", (20000, 20000), 128).save(tmp_path / "huge.jpg", quality=50)
     image = read_image(tmp_path / "huge.jpg")
