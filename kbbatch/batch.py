@@ -312,6 +312,22 @@ def _renamed_to(manifest: Manifest, key: str, photos: list[Path],
                if photo.name in manifest.entries else "give the entry its name"))
 
 
+def _renamed_exclusions(manifest: Manifest | None, names: list[str], photos: list[Path],
+                        hashes: dict[Path, str | None]) -> dict[Path, str]:
+    """Photos without an entry of their own that have the bytes an excluded entry, whose photo
+    is gone, was planned for (`photo_sha256`): the rejected photo renamed; each with that
+    entry's name."""
+    renamed = {}
+    for name in names:
+        planned_for = manifest.entries[name].data.get("photo_sha256")
+        photo = next((photo for photo in photos if planned_for
+                      and photo.name not in manifest.entries
+                      and _sha256_of(photo, hashes) == planned_for), None)
+        if photo is not None:
+            renamed[photo] = name
+    return renamed
+
+
 def _sha256_of(photo: Path, hashes: dict[Path, str | None]) -> str | None:
     """The photo's sha256 (None where it cannot be read), worked out once into hashes."""
     from kbbatch.fingerprint import file_sha256
@@ -541,6 +557,10 @@ def run_folder(
     # an excluded photo that is gone was rejected, then deleted: nothing to make, no failure
     gone_excluded = [name for name in missing if manifest.entries[name].excluded]
     missing = [name for name in missing if name not in gone_excluded]
+    hashes: dict[Path, str | None] = {}
+    # ... or renamed: its bytes are still excluded (a rejected photo renamed was made)
+    renamed_excluded = _renamed_exclusions(manifest, gone_excluded, scan.photos, hashes)
+    gone_excluded = [name for name in gone_excluded if name not in renamed_excluded.values()]
     if not scan.photos and not scan.broken_links and not scan.not_files and not missing:
         raise empty_folder_error(folder, scan)
     check_writable(output_folder)
@@ -565,7 +585,8 @@ def run_folder(
                                   "regular file (a named pipe, socket or device); not read"))
     notes += [f"{manifest.path}: image {name!r} is excluded and not in {folder}; nothing to do"
               for name in gone_excluded]
-    hashes: dict[Path, str | None] = {}
+    notes += [f"{photo}: has the bytes of {name!r}, which {manifest.path} excludes (renamed?); "
+              "not rendered" for photo, name in renamed_excluded.items()]
     for name in missing:
         results.append(ClipResult(str(folder / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "
@@ -614,7 +635,7 @@ def run_folder(
             if stop:
                 return
             entry = manifest.entry(photo.name, photo.parent) if manifest else None
-            if entry is not None and entry.excluded:
+            if (entry is not None and entry.excluded) or photo in renamed_excluded:
                 results.append(excluded_result(journal, photo_key(photo), output_folder))
                 bar.update()
                 continue

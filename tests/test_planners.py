@@ -1012,3 +1012,28 @@ def test_a_crop_of_huge_numbers_is_said_in_readable_numbers(tmp_path):
     message = str(caught.value)
     assert "image 'a.jpg': field 'start': crop [" in message and len(message) < 300, message
     assert "e+300" in message and "lies outside the 910x1137 photo" in message
+
+
+def test_a_rejected_photo_renamed_stays_excluded(tmp_path, quick_preset):
+    """Excluded in the manifest (with the bytes `plan` saw), then renamed: the photo was made
+    under its new name, the run ended 0, and a note said the excluded one was gone."""
+    from kbbatch.depth import DepthOptions
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "a.jpg")
+    Image.fromarray(textured_image(180, 320, seed=2)).save(folder / "b.png")
+    options = ClipOptions(planner="center", depth=DepthOptions(backend="ramp"), threads=2)
+    manifest_path = tmp_path / "m.json"
+    plan_folder(folder, manifest_path, quick_preset, options, show_progress=False)
+    data = json.loads(manifest_path.read_text())
+    data["images"]["b.png"]["exclude"] = True
+    manifest_path.write_text(json.dumps(data))
+    (folder / "b.png").rename(folder / "b_renamed.png")
+    report = run_folder(folder, tmp_path / "out", quick_preset, options, show_progress=False,
+                        manifest=load_manifest(manifest_path))
+    statuses = {Path(r.source).name: r.status for r in report.results}
+    assert statuses == {"a.jpg": "done", "b_renamed.png": "excluded"}, statuses
+    assert not report.failed
+    assert any("b_renamed.png: has the bytes of 'b.png'" in note for note in report.notes)
+    assert not (tmp_path / "out" / "b_renamed.mp4").exists()
