@@ -745,3 +745,14 @@ def test_a_depth_map_the_manifest_names_in_the_folder_is_no_photo_of_the_page(fo
     with running_server(folder, manifest, preset, OPTIONS) as served:
         names = {p["name"] for p in served.get("/api/photos").json()["photos"]}
     assert "wide-depth.png" not in names and {"wide.png", "tall.png"} <= names
+
+
+def test_a_request_body_larger_than_any_save_is_refused_unread(served):
+    """A 200 MB body was read whole (the server grew to 670 MB), the token notwithstanding."""
+    from kbbatch.web.app import REQUEST_BODY_MAX_BYTES
+
+    reply = served.request("POST", "/api/save", b'{"entries": {}}',
+                           {"Content-Type": "application/json",
+                            "Content-Length": str(REQUEST_BODY_MAX_BYTES + 1)})
+    assert reply.status == 413
+    assert served.post("/api/save", {"entries": {}}).status == 200
