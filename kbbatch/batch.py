@@ -457,6 +457,7 @@ def stop_signals(stop: dict) -> Iterator[None]:
         # swallowed it) must not make the next ones vain
         if not stop.get(INTERRUPT_CAUGHT) and not deferred():
             raise KeyboardInterrupt
+        stop.setdefault("by", "SIGINT")  # in the clean-up: said, and the report finished
 
     handlers = {signal.SIGTERM: request}
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup kbbatch ...`: ignored
@@ -685,6 +686,9 @@ def run_folder(
             stop.setdefault("by", f"an error ({type(error).__name__})")
             raise
         finally:
+            # cleaning up now: a Ctrl-C here (just after the last clip) raised in the middle
+            # of it, and left the report written at the start, without a clip
+            stop[INTERRUPT_CAUGHT] = True
             bar.close()
             with contextlib.suppress(JournalError):
                 for job in journal.jobs("running"):
