@@ -164,6 +164,7 @@ def read_note(path: Path) -> object:
         raise ValueError(f"{path}: not one of kbbatch's notes")
     return json.loads(path.read_text(encoding="utf-8"))
 
+
 JOURNAL_RETRY_S = 10.0
 """How long the daemon pauses when its journal cannot be written (a full disk) before retrying."""
 
