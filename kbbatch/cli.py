@@ -39,6 +39,7 @@ from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
 from kbbatch.entry import EXIT_INTERRUPTED
 from kbbatch.images import scan_folder
+from kbbatch.interrupts import deferred, held
 from kbbatch.journal import FolderBusyError, JournalError
 from kbbatch.manifest import ManifestError, load_manifest
 from kbbatch.outputs import OutputFolderError
@@ -459,8 +460,9 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
 
             # The browser is started with a file's name, not the address: its command line
             # is open to every user of the machine, and the address carries the token.
-            redirect = redirect_page(url)
-            cleanup.callback(redirect.unlink, missing_ok=True)
+            with held():  # a stop between the page's making and its clean-up's left it
+                redirect = redirect_page(url)
+                cleanup.callback(redirect.unlink, missing_ok=True)
             removal = threading.Timer(REDIRECT_PAGE_S, redirect.unlink, kwargs={"missing_ok": True})
             removal.daemon = True  # the browser has read it by then
             removal.start()
@@ -469,9 +471,12 @@ def review(folder: Path, manifest_path: Path, host: str, port: int, open_browser
                            "in one", err=True)
 
     def stop(*_: object) -> None:
-        raise KeyboardInterrupt  # a stop, or the terminal closed: cleaned up as Ctrl-C is
+        if not deferred():  # else raised at the end of the held() block
+            raise KeyboardInterrupt  # a stop, or the terminal closed: cleaned up as Ctrl-C is
 
     signal.signal(signal.SIGTERM, stop)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, stop)
     if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup`: ignored
         signal.signal(signal.SIGHUP, stop)
     with contextlib.ExitStack() as cleanup:

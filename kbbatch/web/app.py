@@ -793,9 +793,9 @@ class ReviewServer:
 
     def serve(self, ready: Callable[[str], None] | None = None) -> None:
         self.session.start_planning()
-        if ready:
-            ready(self.url)
-        try:
+        try:  # a stop in ready() stops the planning too
+            if ready:
+                ready(self.url)
             self.server.serve_forever()
         finally:
             self.session.stop()
