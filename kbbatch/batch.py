@@ -302,9 +302,7 @@ def _renamed_to(manifest: Manifest, key: str, photos: list[Path],
     """The photo whose bytes the entry under key was planned for (`photo_sha256`): the photo
     renamed since, its crops kept under the old name. hashes: each photo's sha256, as far as
     worked out (each photo is read once however many entries are looked for)."""
-    planned_for = manifest.entries[key].data.get("photo_sha256")
-    photo = next((photo for photo in photos if planned_for
-                  and _sha256_of(photo, hashes) == planned_for), None)
+    photo = _photo_planned_for(manifest, key, photos, hashes)
     if photo is None:
         return ""
     return (f"; {photo.name!r} has the bytes it was planned for (renamed?): "
@@ -319,13 +317,18 @@ def _renamed_exclusions(manifest: Manifest | None, names: list[str], photos: lis
     entry's name."""
     renamed = {}
     for name in names:
-        planned_for = manifest.entries[name].data.get("photo_sha256")
-        photo = next((photo for photo in photos if planned_for
-                      and photo.name not in manifest.entries
-                      and _sha256_of(photo, hashes) == planned_for), None)
-        if photo is not None:
+        photo = _photo_planned_for(manifest, name, photos, hashes)
+        if photo is not None and photo.name not in manifest.entries:
             renamed[photo] = name
     return renamed
+
+
+def _photo_planned_for(manifest: Manifest, key: str, photos: list[Path],
+                       hashes: dict[Path, str | None]) -> Path | None:
+    """The photo with the bytes the entry under key was planned for (`photo_sha256`)."""
+    planned_for = manifest.entries[key].data.get("photo_sha256")
+    return next((photo for photo in photos if planned_for
+                 and _sha256_of(photo, hashes) == planned_for), None)
 
 
 def _sha256_of(photo: Path, hashes: dict[Path, str | None]) -> str | None:
