@@ -376,6 +376,32 @@ def last_run_lines(output_folder: Path) -> list[str]:
             "photo(s) not started: run again to finish"]
 
 
+def failed_before_a_job(output_folder: Path) -> list[tuple[str, str]]:
+    """The last run's failures no job records, each (source, error): a broken link, a pipe,
+    a manifest's missing photo, found before a job began. `kbbatch status`, counting from the
+    journal alone, said "failed 0" of a run that exited 1 for them."""
+    from kbbatch.journal import Journal, JournalError
+
+    report = _last_report(output_folder)
+    failed = [(str(clip["source"]), str(clip.get("error") or ""))
+              for clip in report.get("clips") or ()
+              if isinstance(clip, dict) and clip.get("status") == "failed"
+              and clip.get("source")]
+    if not failed:
+        return []
+    try:
+        journal = Journal(output_folder, read_only=True)
+    except JournalError:
+        return []
+    try:
+        return [(source, error) for source, error in failed
+                if journal.get(Path(source)) is None]
+    except JournalError:
+        return []
+    finally:
+        journal.close()
+
+
 def _still_to_do(output_folder: Path, sources: list[str], finished_at: str | None
                  ) -> tuple[list[str], int]:
     """The photos among sources that no run has made since finished_at, and how many jobs
@@ -598,67 +624,68 @@ def run_folder(
                                   f"{_nearly_named(name, scan.photos)}"
                                   f"{_renamed_to(manifest, name, scan.photos, hashes)}"))
     stop: dict = {}
-    try:
-        remove_partial_clips(output_folder)
-        journal = Journal(output_folder)
-        settle_deleted_photos(journal, folder, output_folder)
-    except JournalError as error:
-        lock.release()
-        raise OutputFolderError(str(error)) from error
-    made_before = _clips_of_last_report(output_folder)
-    journal_id = journal.identity()
-    written_at = [0.0]
-
-    def report_so_far(every_s: float = REPORT_EVERY_S) -> None:
-        """The report of the run unfinished: a run killed outright (kill -9, a power cut)
-        leaves it, dated and unfinished, with the clips made so far, not an earlier run's
-        report that looks like this one's."""
-        if time.monotonic() - written_at[0] < every_s:
-            return
-        RunReport(str(folder_key(folder)), str(output_folder), preset.name, list(results),
-                  notes, device=options.device, started_at=started_at,
-                  made_before=list(made_before.values()),
-                  journal_id=journal_id).write(output_folder)
-        written_at[0] = time.monotonic()
-
-    report_so_far(every_s=0.0)
-    names = output_names(scan.photos)
-    bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
-                       disable=not show_progress)
-    identity, photos_identity = folder_identity(output_folder), folder_identity(folder)
-
-    def jobs() -> Iterator[ClipJob]:
-        """The photos to make, each started in the journal as the executor takes it."""
-        if fail_fast and any(result.status == "failed" for result in results):
-            return  # a broken link, a pipe, a manifest's missing photo: failed already
-        for photo in scan.photos:
-            if folder_identity(output_folder) != identity:
-                stop["by"] = FOLDER_GONE
-            elif folder_identity(folder) != photos_identity:
-                stop["by"] = PHOTOS_GONE
-            if stop:
-                return
-            entry = manifest.entry(photo.name, photo.parent) if manifest else None
-            if (entry is not None and entry.excluded) or photo in renamed_excluded:
-                results.append(excluded_result(journal, photo_key(photo), output_folder))
-                bar.update()
-                continue
-            job = start_job(journal, photo_key(photo), output_folder, names[photo], preset,
-                            options, entry, force)
-            if isinstance(job, ClipResult):  # skipped, or failed before it could start
-                results.append(_as_made_before(job, made_before))
-                bar.update()
-                report_so_far()
-                if job.status == "no_space":
-                    stop["by"] = DISK_FULL
-                if (fail_fast and job.status == "failed") or job.status == "no_space":
-                    return
-                continue
-            yield job
-
-    # held through the clean-up too: a SIGTERM right after a Ctrl-C (a supervisor stopping
-    # the job) killed the run half cleaned up, with no report
+    # from the journal's opening, and through the clean-up: a SIGTERM before the handlers
+    # (1 in about 12 at 1 s) killed the run with no report; one right after a Ctrl-C (a
+    # supervisor stopping the job) killed it half cleaned up
     with stop_signals(stop):
+        try:
+            remove_partial_clips(output_folder)
+            journal = Journal(output_folder)
+            settle_deleted_photos(journal, folder, output_folder)
+        except JournalError as error:
+            lock.release()
+            raise OutputFolderError(str(error)) from error
+        made_before = _clips_of_last_report(output_folder)
+        journal_id = journal.identity()
+        written_at = [0.0]
+
+        def report_so_far(every_s: float = REPORT_EVERY_S) -> None:
+            """The report of the run unfinished: a run killed outright (kill -9, a power cut)
+            leaves it, dated and unfinished, with the clips made so far, not an earlier run's
+            report that looks like this one's."""
+            if time.monotonic() - written_at[0] < every_s:
+                return
+            RunReport(str(folder_key(folder)), str(output_folder), preset.name, list(results),
+                      notes, device=options.device, started_at=started_at,
+                      made_before=list(made_before.values()),
+                      journal_id=journal_id).write(output_folder)
+            written_at[0] = time.monotonic()
+
+        report_so_far(every_s=0.0)
+        names = output_names(scan.photos)
+        bar = progress_bar(total=len(scan.photos), desc="photos", unit="photo",
+                           disable=not show_progress)
+        identity, photos_identity = folder_identity(output_folder), folder_identity(folder)
+
+        def jobs() -> Iterator[ClipJob]:
+            """The photos to make, each started in the journal as the executor takes it."""
+            if fail_fast and any(result.status == "failed" for result in results):
+                return  # a broken link, a pipe, a manifest's missing photo: failed already
+            for photo in scan.photos:
+                if folder_identity(output_folder) != identity:
+                    stop["by"] = FOLDER_GONE
+                elif folder_identity(folder) != photos_identity:
+                    stop["by"] = PHOTOS_GONE
+                if stop:
+                    return
+                entry = manifest.entry(photo.name, photo.parent) if manifest else None
+                if (entry is not None and entry.excluded) or photo in renamed_excluded:
+                    results.append(excluded_result(journal, photo_key(photo), output_folder))
+                    bar.update()
+                    continue
+                job = start_job(journal, photo_key(photo), output_folder, names[photo], preset,
+                                options, entry, force)
+                if isinstance(job, ClipResult):  # skipped, or failed before it could start
+                    results.append(_as_made_before(job, made_before))
+                    bar.update()
+                    report_so_far()
+                    if job.status == "no_space":
+                        stop["by"] = DISK_FULL
+                    if (fail_fast and job.status == "failed") or job.status == "no_space":
+                        return
+                    continue
+                yield job
+
         try:
             for job in journal.jobs("running"):  # a run that was killed or interrupted
                 journal.finish(Path(job.source), "queued", 0.0, "interrupted")

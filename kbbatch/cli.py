@@ -29,6 +29,7 @@ from kbbatch.batch import (
     RunReport,
     default_jobs,
     empty_folder_error,
+    failed_before_a_job,
     last_run_lines,
     plan_folder,
     report_path,
@@ -687,7 +688,7 @@ def status(outbox: Path) -> None:
     if not (outbox / JOURNAL_NAME).is_file():
         raise click.ClickException(f"{outbox}: no job journal here ({JOURNAL_NAME})")
     try:
-        lines = status_lines(outbox)
+        lines = status_lines(outbox, failed_before_a_job(outbox))
     except JournalError as error:  # damaged: said in one line, as render and watch say it
         raise click.ClickException(str(error)) from error
     for line in [*lines, *last_run_lines(outbox)]:

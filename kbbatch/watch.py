@@ -23,7 +23,7 @@ import stat
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, replace
@@ -1315,11 +1315,14 @@ def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] 
                    if journal.get(photo) is None and not passed_over(photo)]
 
 
-def status_lines(outbox: Path) -> list[str]:
-    """The journal's counts and failures, for `kbbatch status`."""
+def status_lines(outbox: Path, failed_before_jobs: Sequence[tuple[str, str]] = ()
+                 ) -> list[str]:
+    """The journal's counts and failures, for `kbbatch status`; failed_before_jobs: the last
+    run's failures, each (source, error), that no job records (batch.failed_before_a_job)."""
     journal = Journal(outbox, read_only=True)
     try:
         counts = journal.counts()
+        counts["failed"] += len(failed_before_jobs)
         waiting = waiting_in_inbox(outbox, journal)
         if waiting and waiting[1]:
             counts["queued"] += len(waiting[1])
@@ -1330,6 +1333,8 @@ def status_lines(outbox: Path) -> list[str]:
                             else "taken when the daemon runs again"))
         lines += [f"FAILED {job.source}: {(job.error or '').removeprefix(f'{job.source}: ')}"
                   for job in journal.jobs("failed")]  # errors most often begin with the path
+        lines += [f"FAILED {source}: {error.removeprefix(f'{source}: ')} (in the last run, "
+                  "before its job began)" for source, error in failed_before_jobs]
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]
         if waiting is None:  # a batch's folder (a daemon's clips are taken away as made)
             lines += missing_clip_lines(outbox, journal)

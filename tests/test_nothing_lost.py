@@ -391,6 +391,29 @@ def test_status_says_a_clip_deleted_by_hand(tmp_path):
     assert "MISSING" not in status()
 
 
+def test_status_counts_the_failures_found_before_a_job_began(tmp_path):
+    """A broken link (or a pipe, or a manifest's missing photo) fails the run, exit 1, before
+    any job is started for it: `status`, counting the journal alone, said "failed 0"."""
+    folder, out = tmp_path / "photos", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    (folder / "b.jpg").symlink_to(tmp_path / "nowhere.jpg")
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    lines = status.stdout.splitlines()
+    assert "done 1" in lines[0] and "failed 1" in lines[0], status.stdout
+    [failed] = [line for line in lines if line.startswith("FAILED")]
+    assert failed.startswith(f"FAILED {folder / 'b.jpg'}: ") and "before its job began" in failed
+    # made since: the link mended and the folder run again, the report says no failure
+    photo(tmp_path / "nowhere.jpg", seed=2)
+    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+    assert "failed 0" in status.stdout and "FAILED" not in status.stdout, status.stdout
+
+
 def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finished(
         tmp_path, quick_preset, monkeypatch):
     """The disk filled between the report written at the start and the final one: the first
@@ -1096,6 +1119,39 @@ def test_ctrl_c_just_after_the_last_clip_still_finishes_the_report(
     assert written["finished_at"] is not None
     assert [clip["status"] for clip in written["clips"]] == ["done"]
     assert visible_clips(out) == ["a.mp4"]
+
+
+class _Killed(Exception):
+    """What the default SIGTERM would have done: the process gone, no report."""
+
+
+def test_a_sigterm_as_the_journal_opens_stops_the_run_with_a_report(
+        tmp_path, quick_preset, monkeypatch):
+    """A SIGTERM between the journal's opening and the batch's signal handlers (1 in about 12
+    tries at 1 s) killed the run with no report. Sent here as the deleted photos are settled,
+    the step after the opening."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    real_settle = batch.settle_deleted_photos
+
+    def settle_then_terminated(*args):
+        real_settle(*args)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    def killed(_number, _frame):
+        raise _Killed
+
+    monkeypatch.setattr(batch, "settle_deleted_photos", settle_then_terminated)
+    previous = signal.signal(signal.SIGTERM, killed)
+    try:
+        report = run_folder(folder, out, quick_preset, FAST, False)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert report.stopped_by == "SIGTERM"
+    assert [Path(source).name for source in report.not_started] == ["a.jpg"]
+    written = json.loads((out / "kbbatch-report.json").read_text())
+    assert written["stopped_by"] == "SIGTERM" and written["finished_at"] is not None
+    assert visible_clips(out) == []
 
 
 @pytest.mark.slow
