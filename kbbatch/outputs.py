@@ -131,9 +131,10 @@ def clip_name_note(source: Path, folder: Path, preferred: str, name: str, conten
     if name == preferred:
         return None
     mark = read_clip_mark(folder / preferred)
-    if mark is not None and mark[0] == content and mark[1] not in settings:
-        return (f"{source.name}: {preferred}, its clip of other settings, is kept (without "
-                "the journal that knew it, it cannot be told from an edit of it saved in "
+    if mark is not None and mark[0] == content:  # these settings: made again by --force
+        which = "these settings" if mark[1] in settings else "other settings"
+        return (f"{source.name}: {preferred}, its clip of {which}, is kept (without the "
+                "journal that knew it, it cannot be told from an edit of it saved in "
                 f"place); this one is named by its content: {name}")
     return (f"{source.name}: {preferred} (or a depth map beside it) is another photo's or a "
             f"file kbbatch did not write; this one is named by its content: {name}")

@@ -32,7 +32,7 @@ from kbbatch.images import (
     read_image,
     scan_folder,
 )
-from kbbatch.journal import FolderBusyError, FolderLock, Journal
+from kbbatch.journal import JOURNAL_NAME, FolderBusyError, FolderLock, Journal
 from kbbatch.pipeline import ClipOptions, make_clip
 from kbbatch.presets import load_preset, with_overrides
 
@@ -1121,7 +1121,7 @@ def test_ctrl_c_just_after_the_last_clip_still_finishes_the_report(
     assert visible_clips(out) == ["a.mp4"]
 
 
-class _Killed(Exception):
+class _KilledError(Exception):
     """What the default SIGTERM would have done: the process gone, no report."""
 
 
@@ -1139,7 +1139,7 @@ def test_a_sigterm_as_the_journal_opens_stops_the_run_with_a_report(
         os.kill(os.getpid(), signal.SIGTERM)
 
     def killed(_number, _frame):
-        raise _Killed
+        raise _KilledError
 
     monkeypatch.setattr(batch, "settle_deleted_photos", settle_then_terminated)
     previous = signal.signal(signal.SIGTERM, killed)
@@ -2063,3 +2063,19 @@ def test_clips_whose_journal_was_deleted_are_known_by_their_mark_not_made_again(
     assert (out / "p0.mp4").read_bytes() == made["p0.mp4"]
     # said as what it is, not as another photo's or a file of the user's
     assert "p0.mp4, its clip of other settings, is kept" in p0.note, p0.note
+
+
+def test_force_after_the_journal_was_lost_says_what_the_kept_clip_is(tmp_path, quick_preset):
+    """The clip of these very settings, adopted by its mark and made again beside itself by
+    --force, was called "another photo's or a file kbbatch did not write"."""
+    folder, out = tmp_path / "in", tmp_path / "out"
+    photo(folder / "a.jpg", seed=1)
+    run_folder(folder, out, quick_preset, FAST, False)
+    made = (out / "a.mp4").read_bytes()
+    for journal_file in out.glob(JOURNAL_NAME + "*"):
+        journal_file.unlink()
+    [result] = run_folder(folder, out, quick_preset, FAST, False, force=True).results
+    assert result.status == "done" and Path(result.output).name.startswith("a.")
+    assert Path(result.output).name != "a.mp4" and (out / "a.mp4").read_bytes() == made
+    assert "a.mp4, its clip of these settings, is kept" in result.note, result.note
+    assert "another photo's" not in result.note
