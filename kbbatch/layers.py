@@ -249,7 +249,8 @@ lies on a ridge between two borders, and has no one normal to mirror along."""
 
 def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
                      depth: np.ndarray, far_depth: np.ndarray,
-                     nearest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                     nearest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                     surface: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                      ) -> np.ndarray:
     """For each pixel of where, the colour of the pixel mirrored across the border of the
     clean pixels, along the border's normal and sampled bilinearly (its nearest clean pixel
@@ -260,7 +261,10 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     the pixel's far_depth (per pixel of where), not only on clean ones: those may be a thin
     strip (between the band and the reach of the depth edge), and mirrors falling off it took
     one pixel's colour across the band as a smooth streak. nearest: _nearest_with_distance
-    (clean, where), when the caller has it already."""
+    (clean, where), when the caller has it already. surface: (level image, each pixel of
+    where's level, tolerance per pixel of where): the mirror lands only where the level is
+    the pixel's own within the tolerance, on the same surface (beyond a lit curtain, a dark
+    one was mirrored behind a head as a dark shard; beyond the sky, a sail's tip)."""
     ys, xs = np.nonzero(where)
     if not clean.any() or len(ys) == 0:
         return colour[ys, xs]
@@ -291,6 +295,10 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
             + np.clip(land_cols, 0, width - 1))
     lands = inside & ~where.ravel()[flat] & (
         depth.ravel()[flat] >= far_depth * (1.0 - MIRROR_DEPTH_MARGIN))
+    if surface is not None:
+        level, level_here, tolerance = surface
+        lands &= (np.abs(level.reshape(-1, 3)[flat] - level_here).max(axis=-1)
+                  <= tolerance.reshape(-1))
     bilinear = lands[:4].all(axis=0)
     nearest = ~bilinear & lands[4]
     through = ~bilinear & ~nearest & lands[5]
@@ -501,9 +509,14 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
     # (A level varies slowly: it is read at the working size, four times fewer pixels.)
     small_size = (depth.shape[1], depth.shape[0])
     small_clean = back_source > 0.5
-    small_level = _gaussian_mean(cv2.resize(colour, small_size, interpolation=cv2.INTER_AREA),
-                                 small_clean, LEVEL_SIGMA_PX)
-    level = cv2.resize(small_level, size, interpolation=cv2.INTER_LINEAR)
+    small_colour = cv2.resize(colour, small_size, interpolation=cv2.INTER_AREA)
+    small_level = _gaussian_mean(small_colour, small_clean, LEVEL_SIGMA_PX)
+    # The texture mirrored is read against the level of where the mirror lands, a mean over
+    # the clean pixels and those beyond every edge's reach (no soft edge among them): read
+    # against the clean ring's level, extrapolated beyond the ring, it was the difference
+    # between two surfaces (a dark curtain beyond a lit one laid a dark shard behind a head).
+    level = cv2.resize(_gaussian_mean(small_colour, small_clean | ~in_reach, LEVEL_SIGMA_PX),
+                       size, interpolation=cv2.INTER_LINEAR)
     if small_clean.any():
         # carried to each band pixel from its nearest clean pixel, then smoothed along the
         # band: nearest clean pixels jump along a border's stairs, and carried alone the
@@ -517,7 +530,8 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
         level_here = back_here
     level_here = np.where(background_here[:, None], level_here, back_here)
     detail = mirrored_texture(colour - level, clean_back, band, smooth,
-                              farthest_nearby[band], nearest_clean)
+                              farthest_nearby[band], nearest_clean,
+                              surface=(level, level_here, texture))
     # ... less what lies further along the line to the object's colour than the texture's
     # own spread: a trace of the object (the blurred tail of a wire) in the clean background
     # would be copied behind it as a ghost. The same is taken off the other way, or the

@@ -421,3 +421,29 @@ def test_a_small_photos_soft_edge_keeps_its_width():
                           enlargement=1024 / 451)
     soft = (true_alpha > 0.02) & (true_alpha < 0.98)
     assert np.abs(layers.alpha - true_alpha)[soft].mean() < 0.03
+
+
+def test_a_darker_surface_beyond_the_background_is_not_mirrored_behind_the_object():
+    """A head before a lit wall, a dark curtain beyond the wall (photo 03): the mirror landed
+    past the clean pixels beside the head, where the wall's level was extrapolated, and read
+    the curtain as the wall's texture; a dark shard stood behind the head once it moved (here
+    the wall behind it came out 10 levels darker). The mirror lands on the wall alone."""
+    height, width = 120, 200
+    rng = np.random.default_rng(11)
+    cols = np.arange(width, dtype=np.float32)
+    wall = np.array([220.0, 222.0, 230.0])
+    curtain = np.array([110.0, 125.0, 145.0])
+    beyond = np.clip((cols - 93) / 4, 0, 1)[None, :, None]  # just past the clean pixels
+    grain = rng.normal(0, 8, (height, width, 3))  # texture enough to be mirrored
+    background = wall * (1 - beyond) + curtain * beyond + grain
+    head = np.zeros((height, width), bool)
+    head[:, :80] = True
+    share = cv2.GaussianBlur(head.astype(np.float32), (0, 0), 1.0)[..., None]
+    photo = background * (1 - share) + np.array([175.0, 145.0, 130.0]) * share
+    depth = np.where(head, 500.0, 3000.0).astype(np.float32)
+    layers = split_layers(np.clip(photo + 0.5, 0, 255).astype(np.uint8), depth)
+    behind = layers.band & (layers.alpha >= 0.5) & layers.far
+    assert behind.sum() > 200
+    colours = layers.background[behind].astype(np.float32)
+    assert np.abs(colours.mean(axis=0) - wall).max() < 5, colours.mean(axis=0)
+    assert colours.std(axis=0).mean() > 3, "the wall's grain continued"
