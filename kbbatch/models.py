@@ -209,7 +209,7 @@ def check_cache() -> None:
                              f"a pipe or a broken link); {_remedy(spec)}")
     cached = [(spec, cached_path(spec.name)) for spec in REGISTRY.values()]
     cached = [(spec, path) for spec, path in cached if path is not None]
-    if cached:
+    if cached or os.environ.get(PROVIDER_ENV, "").strip():  # set: meant, even with no model
         execution_provider()
     for spec, path in cached:
         problem = cache_problem(spec, path)

@@ -190,6 +190,18 @@ def test_a_damaged_model_in_the_cache_stops_the_run_at_start_naming_the_file(
     assert not (tmp_path / "photos" / "failed").exists()
 
 
+def test_a_provider_this_onnxruntime_lacks_stops_the_run_with_no_model_cached_too(
+        tmp_path, monkeypatch):
+    """Said to stop the run, a misspelt KBBATCH_PROVIDER went unsaid when no model was cached
+    (the run made its clips, exit 0, and the first model pulled later failed on it)."""
+    monkeypatch.setenv(models.MODELS_ENV, str(tmp_path))  # an empty cache
+    monkeypatch.setenv(models.PROVIDER_ENV, "Bogus")
+    with pytest.raises(models.ModelError, match="KBBATCH_PROVIDER=Bogus: this onnxruntime offers"):
+        models.check_cache()
+    monkeypatch.delenv(models.PROVIDER_ENV)
+    models.check_cache()  # unset: nothing to check, onnxruntime is not needed
+
+
 def test_a_network_of_another_kind_under_a_depth_models_name_stops_the_run_at_start(
         tmp_path, monkeypatch):
     """No checksum is known for the depth networks: a segmenter saved under the name failed at
