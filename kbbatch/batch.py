@@ -377,25 +377,29 @@ def last_run_lines(output_folder: Path) -> list[str]:
 
 
 def failed_before_a_job(output_folder: Path) -> list[tuple[str, str]]:
-    """The last run's failures no job records, each (source, error): a broken link, a pipe,
-    a manifest's missing photo, found before a job began. `kbbatch status`, counting from the
-    journal alone, said "failed 0" of a run that exited 1 for them."""
+    """The last run's failures found before a job began, each (source, error): a broken link,
+    a pipe, a manifest's missing photo, whose job is none or an earlier run's failure. `kbbatch
+    status`, counting from the journal alone, said "failed 0" of a run that exited 1 for them.
+    A photo there again since is left out: it fails no more."""
     from kbbatch.journal import Journal, JournalError
 
     report = _last_report(output_folder)
+    clips = report.get("clips")
     failed = [(str(clip["source"]), str(clip.get("error") or ""))
-              for clip in report.get("clips") or ()
+              for clip in (clips if isinstance(clips, list) else ())
               if isinstance(clip, dict) and clip.get("status") == "failed"
-              and clip.get("source")]
+              and clip.get("source")
+              and not os.path.isfile(str(clip["source"]))]  # a photo there now: not failing
     if not failed:
         return []
     try:
         journal = Journal(output_folder, read_only=True)
     except JournalError:
         return []
-    try:
+    try:  # a failed job of an earlier run: this is the newer reason (a corrupt photo's link)
+        jobs = {source: journal.get(Path(source)) for source, _ in failed}
         return [(source, error) for source, error in failed
-                if journal.get(Path(source)) is None]
+                if jobs[source] is None or jobs[source].state == "failed"]
     except JournalError:
         return []
     finally:
@@ -607,18 +611,20 @@ def run_folder(
               if not (manifest and manifest.depth_map_of(path))]
     notes += [f"{path}: the depth map of {image} in {manifest.path}; not rendered as a photo"
               for path, image in maps.items() if image]
+    # each under its key in the journal, as the clips are (status counts it once), said as given
     for link in scan.broken_links:
-        results.append(ClipResult(str(link), None, "failed", 0.0,
+        results.append(ClipResult(str(photo_key(link)), None, "failed", 0.0,
                                   error=f"{link}: {broken_link_reason(link)}"))
     for path in scan.not_files:
-        results.append(ClipResult(str(path), None, "failed", 0.0, error=f"{path}: is not a "
-                                  "regular file (a named pipe, socket or device); not read"))
+        results.append(ClipResult(str(photo_key(path)), None, "failed", 0.0, error=f"{path}: "
+                                  "is not a regular file (a named pipe, socket or device); "
+                                  "not read"))
     notes += [f"{manifest.path}: image {name!r} is excluded and not in {folder}; nothing to do"
               for name in gone_excluded]
     notes += [f"{photo}: has the bytes of {name!r}, which {manifest.path} excludes (renamed?); "
               "not rendered" for photo, name in renamed_excluded.items()]
     for name in missing:
-        results.append(ClipResult(str(folder / name), None, "failed", 0.0,
+        results.append(ClipResult(str(folder_key(folder) / name), None, "failed", 0.0,
                                   error=f"{manifest.path}: image {name!r}: no photo of "
                                   f"that file name in {folder} (keys are plain file names)"
                                   f"{_nearly_named(name, scan.photos)}"

@@ -121,17 +121,18 @@ def replaced_clip_note(source: Path, name: str) -> str:
 
 
 def clip_name_note(source: Path, folder: Path, preferred: str, name: str, content: str,
-                   settings: tuple[str, ...]) -> str | None:
+                   settings: tuple[str, ...], adopted: bool = False) -> str | None:
     """Said when a clip is not named preferred: what holds that name. A clip of this photo
     with other settings, known by its mark once the journal was lost, is kept (it cannot be
-    told from an edit of it saved in place): it was said to be another photo's. (An edit the
-    journal tells from its clip keeps the mark of these settings: a file of the user's.)"""
+    told from an edit of it saved in place): it was said to be another photo's; so was one of
+    these settings adopted by its mark (the journal lost) and made again by --force. (An edit
+    the journal tells from its clip keeps the mark of these settings: a file of the user's.)"""
     from kbbatch.encode import read_clip_mark
 
     if name == preferred:
         return None
     mark = read_clip_mark(folder / preferred)
-    if mark is not None and mark[0] == content:  # these settings: made again by --force
+    if mark is not None and mark[0] == content and (mark[1] not in settings or adopted):
         which = "these settings" if mark[1] in settings else "other settings"
         return (f"{source.name}: {preferred}, its clip of {which}, is kept (without the "
                 "journal that knew it, it cannot be told from an edit of it saved in "
@@ -180,6 +181,6 @@ def name_job(journal, source: Path, output_folder: Path, preferred: str,
     replaces = previous is not None and previous.made_from_other_bytes(name, content, output)
     kept = previous is not None and previous.output == name  # its own name: nothing to note
     name_note = None if kept else clip_name_note(source, output_folder, preferred, name,
-                                                  content, settings)
+                                                  content, settings, adopted is not None)
     return ClipJob(source, output, entry, name_note, replaces_other_bytes=replaces,
                    content=content)

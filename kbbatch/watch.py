@@ -1318,11 +1318,14 @@ def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] 
 def status_lines(outbox: Path, failed_before_jobs: Sequence[tuple[str, str]] = ()
                  ) -> list[str]:
     """The journal's counts and failures, for `kbbatch status`; failed_before_jobs: the last
-    run's failures, each (source, error), that no job records (batch.failed_before_a_job)."""
+    run's failures, each (source, error), found before a job began (batch.failed_before_a_job),
+    said instead of an earlier failure of the same photo's job."""
     journal = Journal(outbox, read_only=True)
     try:
         counts = journal.counts()
-        counts["failed"] += len(failed_before_jobs)
+        newer = {source: error for source, error in failed_before_jobs}
+        failed = [job for job in journal.jobs("failed") if str(job.source) not in newer]
+        counts["failed"] = len(failed) + len(newer)
         waiting = waiting_in_inbox(outbox, journal)
         if waiting and waiting[1]:
             counts["queued"] += len(waiting[1])
@@ -1332,9 +1335,9 @@ def status_lines(outbox: Path, failed_before_jobs: Sequence[tuple[str, str]] = (
                          + ("taken as they settle" if _folder_in_use(outbox)
                             else "taken when the daemon runs again"))
         lines += [f"FAILED {job.source}: {(job.error or '').removeprefix(f'{job.source}: ')}"
-                  for job in journal.jobs("failed")]  # errors most often begin with the path
+                  for job in failed]  # errors most often begin with the path
         lines += [f"FAILED {source}: {error.removeprefix(f'{source}: ')} (in the last run, "
-                  "before its job began)" for source, error in failed_before_jobs]
+                  "before its job began)" for source, error in newer.items()]
         lines += [f"QUEUED {job.source} ({job.error})" for job in journal.jobs("queued")]
         if waiting is None:  # a batch's folder (a daemon's clips are taken away as made)
             lines += missing_clip_lines(outbox, journal)

@@ -396,22 +396,39 @@ def test_status_counts_the_failures_found_before_a_job_began(tmp_path):
     any job is started for it: `status`, counting the journal alone, said "failed 0"."""
     folder, out = tmp_path / "photos", tmp_path / "out"
     photo(folder / "a.jpg", seed=1)
+    (folder / "b.jpg").write_bytes(b"not a photo")  # fails in its job first
+    (tmp_path / "via").symlink_to(folder)
+
+    def run(photos: Path) -> None:
+        run = subprocess.run([*CLI, str(photos), "-o", str(out), *FAST_CLI],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 1, run.stderr
+
+    def status() -> list[str]:
+        status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
+        assert status.returncode == 0 and "Traceback" not in status.stderr, status.stderr
+        return status.stdout.splitlines()
+
+    run(folder)
+    (folder / "b.jpg").unlink()
     (folder / "b.jpg").symlink_to(tmp_path / "nowhere.jpg")
-    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 1, run.stderr
-    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
-    lines = status.stdout.splitlines()
-    assert "done 1" in lines[0] and "failed 1" in lines[0], status.stdout
+    run(tmp_path / "via")  # the folder as typed is not the journal's key: one photo, once
+    lines = status()
+    assert "done 1" in lines[0] and "failed 1" in lines[0], lines
     [failed] = [line for line in lines if line.startswith("FAILED")]
     assert failed.startswith(f"FAILED {folder / 'b.jpg'}: ") and "before its job began" in failed
-    # made since: the link mended and the folder run again, the report says no failure
-    photo(tmp_path / "nowhere.jpg", seed=2)
-    run = subprocess.run([*CLI, str(folder), "-o", str(out), *FAST_CLI],
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr
-    status = subprocess.run([*CLI, "status", str(out)], capture_output=True, text=True)
-    assert "failed 0" in status.stdout and "FAILED" not in status.stdout, status.stdout
+    (folder / "c.jpg").symlink_to(tmp_path / "nowhere either.jpg")
+    run(folder)
+    lines = status()
+    assert "failed 2" in lines[0], lines
+    # mended, and not yet made again: no longer failing
+    photo(tmp_path / "nowhere either.jpg", seed=2)
+    lines = status()
+    assert "failed 1" in lines[0] and "c.jpg" not in "\n".join(lines), lines
+    # a report whose clips are not a list (hand-edited): counted from the journal alone
+    report = json.loads((out / "kbbatch-report.json").read_text())
+    (out / "kbbatch-report.json").write_text(json.dumps(report | {"clips": 1}))
+    assert "failed 1" in status()[0]
 
 
 def test_a_run_whose_final_report_fails_leaves_no_report_saying_it_never_finished(
