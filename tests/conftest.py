@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ctypes
 import fcntl
+import signal
 import socket
 import struct
 from pathlib import Path
@@ -34,6 +35,17 @@ def isolate_network() -> bool:
 
 
 NETWORK_ISOLATED = isolate_network()  # at import: before any test starts a thread or a process
+
+
+def hear_ctrl_c() -> None:
+    """Started in the background of a shell without job control (`pytest ... &`), the run
+    inherits SIGINT ignored, and so does every kbbatch it starts: each Ctrl-C test then found
+    kbbatch deaf to it (7 failures). The tests are about a terminal's Ctrl-C: it is heard."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+hear_ctrl_c()  # at import, as above: the pytest-xdist workers and every process started inherit it
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 PHOTOS = SHARED / "photos"
