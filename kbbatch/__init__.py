@@ -2,13 +2,39 @@
 
 from __future__ import annotations
 
-import atexit
-import contextlib
 import os
-import shutil
-import stat
-import tempfile
-from pathlib import Path
+import sys
+
+EXIT_INTERRUPTED = 130
+"""Exit status of a run stopped by Ctrl-C or SIGTERM before it was through."""
+
+
+def _as_the_command() -> bool:
+    """Whether this process is the `kbbatch` command (its script, or `python -m kbbatch`), not
+    a program or worker that imports kbbatch."""
+    return (os.path.basename(sys.argv[0]) == "kbbatch"
+            or sys.orig_argv[1:3] == ["-m", "kbbatch"])
+
+
+def interrupted_while_loading() -> None:
+    """A Ctrl-C while the command's first modules load, before kbbatch.entry can take it (a
+    traceback, and death by SIGINT): said as entry says it, status 130. Elsewhere it returns,
+    and the caller raises the interrupt again."""
+    if not _as_the_command():
+        return
+    import signal
+
+    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # as entry._stopped_already
+        signal.signal(number, signal.SIG_IGN)
+    print("\ninterrupted: nothing partial is left; run again to finish", file=sys.stderr)
+    raise SystemExit(EXIT_INTERRUPTED)
+
+
+try:
+    from pathlib import Path
+except KeyboardInterrupt:
+    interrupted_while_loading()
+    raise
 
 
 def _writable(folder: Path, base: Path) -> bool:
@@ -37,6 +63,12 @@ def _compiled_code_cache() -> None:
     no one else may write it (numba unpickles what it finds there). Set before any kernel
     module imports numba.
     """
+    import atexit
+    import contextlib
+    import shutil
+    import stat
+    import tempfile
+
     package = Path(__file__).parent
     if "NUMBA_CACHE_DIR" in os.environ or _writable(package / "__pycache__", package):
         return
@@ -67,7 +99,11 @@ def _compiled_code_cache() -> None:
         atexit.register(shutil.rmtree, fresh, ignore_errors=True)
 
 
-_compiled_code_cache()
+try:
+    _compiled_code_cache()
+except KeyboardInterrupt:
+    interrupted_while_loading()
+    raise
 
 # onnxruntime 1.29 and later, on Linux and macOS, send usage telemetry to Microsoft unless
 # this is set before the library loads; on import they also wrote a session file into TMPDIR

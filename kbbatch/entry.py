@@ -7,11 +7,14 @@ from __future__ import annotations
 
 import sys
 
-from kbbatch.interrupts import interrupted
-from kbbatch.streams import standard_streams_ready
+from kbbatch import EXIT_INTERRUPTED, interrupted_while_loading
 
-EXIT_INTERRUPTED = 130
-"""Exit status of a run stopped by Ctrl-C or SIGTERM before it was through."""
+try:
+    from kbbatch.interrupts import interrupted
+    from kbbatch.streams import standard_streams_ready
+except KeyboardInterrupt:
+    interrupted_while_loading()
+    raise
 
 
 def main() -> None:

@@ -1285,6 +1285,28 @@ def test_a_ctrl_c_a_library_turned_into_another_error_still_stops_the_run(
     assert not (tmp_path / "a.mp4").exists()
 
 
+@pytest.mark.parametrize(("importer", "imported"), [("kbbatch", "tempfile"),
+                                                  ("kbbatch.entry", "kbbatch.streams")])
+def test_ctrl_c_while_the_first_modules_load_ends_with_130_and_no_traceback(importer, imported):
+    """Ctrl-C 0.1 s after the start, on a loaded machine, landed in kbbatch/__init__'s own
+    imports (tempfile), before kbbatch.entry could take it: a traceback, and death by SIGINT
+    (1 full run in 3). Here the import itself is interrupted, every time."""
+    code = ("import builtins, sys\n"
+            "sys.argv[0] = 'kbbatch'\n"
+            "real = builtins.__import__\n"
+            "def hooked(name, globals=None, *args, **kwargs):\n"
+            f"    if name == {imported!r} and (globals or {{}}).get('__name__') == {importer!r}:\n"
+            "        raise KeyboardInterrupt\n"
+            "    return real(name, globals, *args, **kwargs)\n"
+            "builtins.__import__ = hooked\n"
+            "from kbbatch.entry import main\n"
+            "main()\n")
+    run = subprocess.run([sys.executable, "-c", code, "presets"], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 130, run.stderr
+    assert "Traceback" not in run.stderr and "run again" in run.stderr, run.stderr
+
+
 @pytest.mark.parametrize("command", ["render", "plan"])
 def test_ctrl_c_while_it_starts_up_ends_with_130_and_no_traceback(tmp_path, command):
     """Ctrl-C while the modules loaded gave a traceback; while a command set up (or, in
