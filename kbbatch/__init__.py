@@ -8,6 +8,21 @@ import sys
 EXIT_INTERRUPTED = 130
 """Exit status of a run stopped by Ctrl-C or SIGTERM before it was through."""
 
+INTERRUPTED_LINE = "\ninterrupted: nothing partial is left; run again to finish"
+"""What the command says, on stderr, when a Ctrl-C stopped it before a command could."""
+
+
+def ignore_stop_signals() -> None:
+    """The run is stopped and cleaned up: a SIGTERM, hang-up or another Ctrl-C while the
+    interpreter shuts down (a supervisor's SIGTERM a moment after the Ctrl-C, a key pressed
+    again) is ignored, so the status is 130, not death by the signal (as if the stop had not
+    finished). Ignored, not handled: CPython puts handled signals back to their default
+    action as it finalises."""
+    import signal
+
+    for number in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        signal.signal(number, signal.SIG_IGN)
+
 
 def _as_the_command() -> bool:
     """Whether this process is the `kbbatch` command (its script, or `python -m kbbatch`), not
@@ -22,11 +37,8 @@ def interrupted_while_loading() -> None:
     and the caller raises the interrupt again."""
     if not _as_the_command():
         return
-    import signal
-
-    for number in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # as entry._stopped_already
-        signal.signal(number, signal.SIG_IGN)
-    print("\ninterrupted: nothing partial is left; run again to finish", file=sys.stderr)
+    ignore_stop_signals()
+    print(INTERRUPTED_LINE, file=sys.stderr)
     raise SystemExit(EXIT_INTERRUPTED)
 
 

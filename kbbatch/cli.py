@@ -18,6 +18,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
+from kbbatch import EXIT_INTERRUPTED
 from kbbatch import depth as depth_stage
 from kbbatch import models as model_registry
 from kbbatch.batch import (
@@ -38,7 +39,6 @@ from kbbatch.batch import (
 from kbbatch.depth import DepthOptions
 from kbbatch.depth import cache as depth_cache
 from kbbatch.device import DEVICE_ENV, DEVICE_NAMES, DeviceError, resolve_device
-from kbbatch.entry import EXIT_INTERRUPTED
 from kbbatch.images import scan_folder
 from kbbatch.interrupts import deferred, held
 from kbbatch.journal import FolderBusyError, JournalError

@@ -7,7 +7,12 @@ from __future__ import annotations
 
 import sys
 
-from kbbatch import EXIT_INTERRUPTED, interrupted_while_loading
+from kbbatch import (
+    EXIT_INTERRUPTED,
+    INTERRUPTED_LINE,
+    ignore_stop_signals,
+    interrupted_while_loading,
+)
 
 try:
     from kbbatch.interrupts import interrupted
@@ -23,29 +28,17 @@ def main() -> None:
         status = _run()
     except SystemExit as exit_:  # said and settled (an interrupt the command caught included)
         if exit_.code == EXIT_INTERRUPTED:  # first: a Ctrl-C pressed again landed in the exec
-            _stopped_already()              # below, with a traceback and death by SIGINT
+            ignore_stop_signals()           # below, with a traceback and death by SIGINT
         _forget_uncaught_interrupt()
         raise
     except BaseException as error:
         if not interrupted(error):
             raise
-        _stopped_already()
-        print("\ninterrupted: nothing partial is left; run again to finish", file=sys.stderr)
+        ignore_stop_signals()
+        print(INTERRUPTED_LINE, file=sys.stderr)
         _forget_uncaught_interrupt()
         sys.exit(EXIT_INTERRUPTED)
     sys.exit(status if isinstance(status, int) else 0)
-
-
-def _stopped_already() -> None:
-    """The run is stopped and cleaned up: a SIGTERM, hang-up or another Ctrl-C while the
-    interpreter shuts down (a supervisor's SIGTERM a moment after the Ctrl-C, a key pressed
-    again) is ignored, so the status is 130, not death by the signal (as if the stop had not
-    finished). Ignored, not handled: CPython puts handled signals back to their default
-    action as it finalises."""
-    import signal
-
-    for number in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
-        signal.signal(number, signal.SIG_IGN)
 
 
 def _forget_uncaught_interrupt() -> None:
