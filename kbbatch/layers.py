@@ -295,10 +295,12 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
             + np.clip(land_cols, 0, width - 1))
     lands = inside & ~where.ravel()[flat] & (
         depth.ravel()[flat] >= far_depth * (1.0 - MIRROR_DEPTH_MARGIN))
-    if surface is not None:
+    if surface is not None:  # channel by channel: a third of the time of one (6, N, 3) array
         level, level_here, tolerance = surface
-        lands &= (np.abs(level.reshape(-1, 3)[flat] - level_here).max(axis=-1)
-                  <= tolerance.reshape(-1))
+        levels, tolerance = level.reshape(-1, 3), tolerance.reshape(-1)
+        for channel in range(3):
+            lands &= (np.abs(levels[:, channel][flat] - level_here[:, channel])
+                      <= tolerance)
     bilinear = lands[:4].all(axis=0)
     nearest = ~bilinear & lands[4]
     through = ~bilinear & ~nearest & lands[5]
