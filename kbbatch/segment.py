@@ -130,6 +130,11 @@ FRAGMENT_MIN_PX = 400
 SLIVER_OPEN_PX = 2
 """Masks are opened (eroded then dilated) by this radius: strands thinner than twice it go."""
 
+TIP_REACH_MAX_PX = 16
+"""... except a thin tip reaching at most this far (working px) beyond what the opening kept:
+the narrow end of a leaf, a beak, an ear (photo 15's leaf tips reach 5 to 13 px). A longer
+strand with a free end is a sliver (a strip of a neighbour's suit) and stays cut."""
+
 HOLE_FILL_MAX_FRACTION = 0.05
 """Holes inside a mask smaller than this fraction of its area are filled (a gap between
 fingers stays background, a speckle in a shirt does not)."""
@@ -535,16 +540,21 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     return drop_fragments(opened.astype(bool) | small[labels], keep)
 
 
-def with_bridges(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
-    """cleaned, with the strands of original that the cleaning cut and that join two of its
-    pieces put back. A dandelion's stalks (3 px) joined its seeds to its parachute: cut, they
-    stayed on the far ground while both ends moved with the card, and broke off. A strand with
-    one end free (a loose sliver of a suit) stays cut."""
+def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
+    """cleaned, with two kinds of the strands of original that the cleaning cut put back.
+
+    Bridges, joining two of its pieces: a dandelion's stalks (3 px) joined its seeds to its
+    parachute; cut, they stayed on the far ground while both ends moved with the card, and
+    broke off. Tips, thin all along and reaching at most TIP_REACH_MAX_PX beyond it: the
+    narrow end of a leaf, cut, stayed on the wall and floated beside the leaf as it moved (photo
+    15, the social preset). A strand with one end free that reaches further (a loose sliver of
+    a suit), or with a thicker part (a fragment the cleaning dropped), stays cut.
+    """
     strands = original.astype(bool) & ~cleaned
     strand_count, strand_labels = cv2.connectedComponents(strands.astype(np.uint8),
                                                           connectivity=8)
     piece_count, pieces = cv2.connectedComponents(cleaned.astype(np.uint8), connectivity=8)
-    if strand_count <= 1 or piece_count <= 2:
+    if strand_count <= 1 or piece_count <= 1:
         return cleaned
     # the pieces beside each strand pixel: the largest and smallest piece number around it
     square = np.ones((3, 3), np.uint8)
@@ -558,8 +568,17 @@ def with_bridges(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
     pairs = pairs[pairs[:, 1] < piece_count]
     touched = np.bincount(pairs[:, 0], minlength=strand_count)
     bridges = touched >= 2
-    bridges[0] = False
-    return cleaned | bridges[strand_labels]
+    # A tip: no part of it survives the opening on its own, and it ends near the piece.
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SLIVER_OPEN_PX + 1,) * 2)
+    thick = cv2.morphologyEx(strands.astype(np.uint8), cv2.MORPH_OPEN, kernel) > 0
+    has_thick = np.bincount(strand_labels[thick], minlength=strand_count) > 0
+    beyond = cv2.distanceTransform((~cleaned.astype(bool)).astype(np.uint8), cv2.DIST_L2, 3)
+    reach = np.zeros(strand_count, np.float32)
+    np.maximum.at(reach, strand_labels[strands], beyond[strands])
+    tips = (touched == 1) & ~has_thick & (reach <= TIP_REACH_MAX_PX)
+    put_back = bridges | tips
+    put_back[0] = False
+    return cleaned | put_back[strand_labels]
 
 
 def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -733,7 +752,7 @@ def find_instances(image: np.ndarray,
             snapped = np.where(jaw, mask if salient is None else mask & near_salient, snapped)
             if salient is not None:
                 snapped = snapped & ~thin_skirt(snapped, near_salient)
-        mask = with_bridges(clean_mask(snapped, keep=head), snapped)
+        mask = with_strands(clean_mask(snapped, keep=head), snapped)
         # the face is its main pieces (a stray pixel of it is no face to keep whole)
         face = drop_fragments(mask & head, min_px=0) if head is not None else None
         mask = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)

@@ -14,7 +14,7 @@ from kbbatch.segment import (
     clean_mask,
     group_cards,
     own_pieces,
-    with_bridges,
+    with_strands,
 )
 
 from .conftest import SHARED, textured_image
@@ -45,7 +45,7 @@ def test_clean_mask_keeps_a_face_whole_even_where_it_is_thin():
     assert clean_mask(mask, keep=face)[30:60, 98:101].all()
 
 
-def test_a_strand_joining_two_pieces_of_a_mask_is_put_back_a_loose_one_is_not():
+def test_a_strand_joining_two_pieces_of_a_mask_is_put_back_a_long_loose_one_is_not():
     """A dandelion's stalk (3 px) joins its seed to its parachute: cut as a sliver, it stayed
     on the far ground while both ends moved with the card, and the move broke it."""
     mask = np.zeros((240, 200), bool)
@@ -55,12 +55,31 @@ def test_a_strand_joining_two_pieces_of_a_mask_is_put_back_a_loose_one_is_not():
     mask[50:120, 160:163] = True  # a loose strand, one end free
     cleaned = clean_mask(mask)
     assert not cleaned[100:160, 98:103].any()  # the opening cuts both strands
-    bridged = with_bridges(cleaned, mask)
+    bridged = with_strands(cleaned, mask)
     assert bridged[85:175, 100].all(), "the stalk joining the two pieces was not put back"
     assert not bridged[85:120, 160:163].any(), "a strand with a free end was put back"
     assert (bridged & ~mask).sum() == 0  # nothing the mask did not have
     count, _ = cv2.connectedComponents(bridged.astype(np.uint8), connectivity=8)
     assert count - 1 == 1
+
+
+def test_a_thin_tip_stays_on_its_card():
+    """The narrow end of a leaf (photo 15), cut by the cleaning's opening, stayed on the wall
+    while the card moved: a green sliver floated beside the leaf."""
+    from kbbatch.depth import SceneContext
+    from kbbatch.depth.popup import salient_cards
+
+    saliency = np.full((300, 300), 0.05, np.float32)
+    saliency[150:280, 80:220] = 0.95  # the pot
+    leaf = np.zeros((300, 300), np.uint8)
+    cv2.fillConvexPoly(leaf, np.array([[138, 152], [162, 152], [150, 100]]), 1)  # tapering
+    saliency[leaf > 0] = 0.95
+    context = SceneContext(np.zeros((300, 300, 3), np.uint8))
+    context.__dict__.update(saliency=saliency, instances=[])
+    (card, _), = salient_cards(context)
+    assert not clean_mask(saliency > 0.5)[100:104].any()  # the opening cuts the tip
+    assert card[leaf > 0].all(), "the leaf's tip is not on the card"
+    assert not (card & (saliency < 0.5)).any()
 
 
 def test_an_instance_keeps_its_own_pieces_not_its_neighbours():

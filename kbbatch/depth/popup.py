@@ -17,7 +17,7 @@ from kbbatch.segment import (
     clean_mask,
     enclosed_holes,
     group_cards,
-    with_bridges,
+    with_strands,
 )
 
 HORIZON_RANGE = (0.15, 0.8)
@@ -119,9 +119,10 @@ def salient_cards(context: SceneContext) -> list[tuple[np.ndarray, bool]]:
     cards = [(close_notches(clean_mask(labels == k), saliency,
                             np.isin(labels, [other for other in large if other != k])), k)
              for k in large]
-    # Strands joining a card's pieces go with it, once it is judged upright without them:
-    # a dandelion's two stalks would make it a frame around the field between them.
-    return [(with_bridges(card, labels == k), True) for card, k in cards
+    # Strands joining a card's pieces, and its thin tips, go with it once it is judged
+    # upright without them: a dandelion's two stalks would make it a frame around the field
+    # between them.
+    return [(with_strands(card, labels == k), True) for card, k in cards
             if card.sum() >= minimum and stands_up(card)]
 
 
