@@ -728,12 +728,13 @@ def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
 
 
 def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray,
-                  enlargement: float = 1.0) -> tuple[PointCloud, np.ndarray]:
+                  enlargement: float = 1.0, relief: float = 1.0
+                  ) -> tuple[PointCloud, np.ndarray]:
     """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
     edges; within their band a far opaque point with the background's colour and a near point
     with the object's colour and its alpha matte. Also the depth of the farthest point at
     each pixel (the surface a fill must stay behind)."""
-    layers = split_layers(photo, depth, enlargement)
+    layers = split_layers(photo, depth, enlargement, relief)
     alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
     whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
     cloud = (
@@ -783,13 +784,15 @@ def build_extended_cloud(
     scene: SceneGeometry,
     inpainter: ColourInpainter | None = None,
     enlargement: float = 1.0,
+    relief: float = 1.0,
 ) -> Extension:
     """The photo as a point cloud in soft layers, extended at the extreme views.
 
     photo is RGB at the cloud density (any size of the working aspect); depth is at the
     working size. At the start view (when it is not the photo's own) and at the overshot end
     view, the disocclusions are filled with background and appended to the cloud.
-    enlargement: working pixels per pixel of the source photo, when smaller (split_layers).
+    enlargement: working pixels per pixel of the source photo, when smaller (split_layers);
+    relief: what depth's relief was scaled by (kbbatch.risk.relieved), 1 when it was not.
     """
     cloud_scale = photo.shape[1] / scene.width_px
     cloud_height = round(scene.height_px * cloud_scale)
@@ -797,7 +800,7 @@ def build_extended_cloud(
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
     cloud, farthest = layered_cloud(photo, depth, photo_view,
-                                    source_window(scene, plan, cloud_scale), enlargement)
+                                    source_window(scene, plan, cloud_scale), enlargement, relief)
     # a point splats onto the 2 x 2 pixels around it: a fill stays behind all of them
     farthest = cv2.dilate(farthest, np.ones((3, 3), np.uint8))
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX

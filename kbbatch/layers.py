@@ -351,8 +351,8 @@ def _window_around(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
             slice(max(0, cols[0] - margin), cols[-1] + margin + 1))
 
 
-def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
-                 ) -> SoftLayers:
+def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0,
+                 relief: float = 1.0) -> SoftLayers:
     """The photo (RGB uint8 at the cloud's density) and its depth (working size) as soft layers.
 
     Near each depth edge, the clean colours of both sides are estimated from pixels well
@@ -368,7 +368,8 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
     working size. Its edges are blurred over that many more working pixels, so the band, the
     matte's reach and the widest edge blur are counted in the photo's own pixels (up to
     ENLARGEMENT_MAX): in working pixels, a small photo's soft edges (a cat's out-of-focus
-    cheek, 451 px wide) were cut hard.
+    cheek, 451 px wide) were cut hard. relief: what the depth's relief was scaled by
+    (depth_edges).
     """
     height, width = photo.shape[:2]
     scale = width / depth.shape[1]
@@ -378,7 +379,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0
     window = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band_px + 1,) * 2)
     nearest = cv2.erode(depth, window)
     farthest = cv2.dilate(depth, window)
-    edges = depth_edges(depth).astype(np.uint8)
+    edges = depth_edges(depth, relief).astype(np.uint8)
     # Split only where the two sides really differ in depth within reach.
     small_band = (cv2.dilate(edges, window) > 0) & (farthest > nearest * 1.001)
     # Which side each pixel is on, judged over twice the band, so that clean pixels of both

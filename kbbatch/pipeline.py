@@ -271,10 +271,12 @@ def prepare_scene(
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
     check_cloud_size(scale, plan, scene, preset, photo.shape[1], photo_path)
     risk = assess_risk(working, depth, plan, scene)
+    relief = 1.0
     if risk.relief < 1.0 and risk.reasons:  # do no harm: less parallax, not a broken clip
         log.warning("%s: parallax reduced to %d%%: %s", photo_path or "photo",
                     round(100 * risk.relief), "; ".join(risk.reasons))
-        depth = relieved(depth, risk.relief)
+        relief = risk.relief
+        depth = relieved(depth, relief)
         scene = SceneGeometry(width, height, nearest_depth(depth))
     timings["plan"] = time.perf_counter() - clock
 
@@ -283,7 +285,7 @@ def prepare_scene(
     cloud_width = round(width * scale)
     photo_cloud = resize_to(photo, cloud_width, round(height * cloud_width / width))
     extension = build_extended_cloud(photo_cloud, depth, plan, scene, colour_inpainter(),
-                                     enlargement=width / photo.shape[1])
+                                     enlargement=width / photo.shape[1], relief=relief)
     timings["inpaint"] = time.perf_counter() - clock
     return PreparedScene(plan, scene, extension.cloud, depth_result.backend,
                          depth_result.disparity, risk, cloud_width / width)

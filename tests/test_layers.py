@@ -447,3 +447,26 @@ def test_a_darker_surface_beyond_the_background_is_not_mirrored_behind_the_objec
     colours = layers.background[behind].astype(np.float32)
     assert np.abs(colours.mean(axis=0) - wall).max() < 5, colours.mean(axis=0)
     assert colours.std(axis=0).mean() > 3, "the wall's grain continued"
+
+
+def test_a_relieved_depth_is_split_along_the_same_edges():
+    """At a quarter of the relief (kbbatch.risk) a lantern's step fell just under the paper's
+    edge test, which then caught only the corners of its stairs: the layers were split in
+    blobs along its top, and its glow showed blocks at the end of the move."""
+    from kbbatch.render import depth_edges
+    from kbbatch.risk import relieved
+
+    height, width = 120, 200
+    rows = np.arange(height)[:, None]
+    cols = np.arange(width)[None, :]
+    inside = rows > 50 + cols * 0.07  # a near object below a slanting edge
+    photo = np.where(inside[..., None], 230, 20).astype(np.uint8).repeat(3, axis=2)
+    depth = np.where(inside, 1.0, 1.125).astype(np.float32)  # disparity steps by 0.11
+    quarter = relieved(depth, 0.25)
+    full_band = split_layers(photo, depth).band
+    assert full_band[:, 20:180].any(axis=0).all()  # along the whole edge
+    # read as if it had its full relief, the step is missed but for the stairs' corners
+    assert depth_edges(quarter).sum() < depth_edges(depth).sum() / 4
+    assert np.array_equal(depth_edges(quarter, 0.25), depth_edges(depth))
+    assert np.array_equal(split_layers(photo, quarter, relief=0.25).band, full_band)
+    assert not depth_edges(relieved(depth, 0.0), 0.0).any()
