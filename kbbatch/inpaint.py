@@ -25,7 +25,14 @@ from kbbatch.camera import (
     working_view,
 )
 from kbbatch.layers import nearest_pixels, split_layers
-from kbbatch.render import PointCloud, back_project, depth_edges, points_at, render
+from kbbatch.render import (
+    SOFT_Z_DISPARITY_PX,
+    PointCloud,
+    back_project,
+    depth_edges,
+    points_at,
+    render,
+)
 
 FOREGROUND_MARGIN = 0.05
 """A pixel beside a hole is foreground when it is this much (relatively) nearer than the
@@ -46,6 +53,13 @@ photo shows where they fall in its own view: beyond the renderer's blend (SOFT_Z
 short of its crack test (CRACK_DISPARITY_PX). A fill is what the photo does not show, yet a
 crack filled at a cup's rim, level with it, blended into the rim's soft edge and broke the
 rim up in the start frame."""
+
+LAYER_GAP_MIN_PX = 2 * SOFT_Z_DISPARITY_PX
+"""A band pixel's two layers closer than this in disparity (working px, in the photo's view)
+are one point: the renderer blends points within SOFT_Z_DISPARITY_PX of each other as one
+surface, and a soft point blended into the opaque one behind it showed as grey blocks along a
+lantern's lower edge, where its card meets the ground's depth (at a quarter of the relief).
+Twice that: a move changes the gap."""
 
 SOURCE_BAND_PX = 7
 """How far around a hole colour sources are screened for foreground, at the working size."""
@@ -728,25 +742,31 @@ def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
 
 
 def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.ndarray,
-                  enlargement: float = 1.0, relief: float = 1.0
+                  disparity_scale: float, enlargement: float = 1.0, relief: float = 1.0
                   ) -> tuple[PointCloud, np.ndarray]:
     """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
     edges; within their band a far opaque point with the background's colour and a near point
     with the object's colour and its alpha matte. Also the depth of the farthest point at
-    each pixel (the surface a fill must stay behind)."""
+    each pixel (the surface a fill must stay behind).
+
+    A band pixel whose two layers lie within LAYER_GAP_MIN_PX of each other is kept whole,
+    as one where no clean background lies near (SoftLayers.unsplit)."""
     layers = split_layers(photo, depth, enlargement, relief)
     alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
     whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)
+    gap_px = (1.0 / layers.near_depth - 1.0 / layers.far_depth) * disparity_scale
+    close = layers.band & (gap_px < LAYER_GAP_MIN_PX)
+    whole = layers.unsplit | close
+    far = layers.far & ~close
     cloud = (
         back_project(photo, layers.depth, view, keep=keep & ~layers.band)
-        .extended(back_project(photo, whole_depth, view, keep=keep & layers.unsplit))
-        .extended(back_project(layers.background, layers.far_depth, view,
-                               keep=keep & layers.far))
+        .extended(back_project(photo, whole_depth, view, keep=keep & whole))
+        .extended(back_project(layers.background, layers.far_depth, view, keep=keep & far))
         .extended(back_project(layers.foreground, layers.near_depth, view,
-                               keep=keep & layers.near, alpha=alpha))
+                               keep=keep & layers.near & ~close, alpha=alpha))
     )
-    farthest = np.where(layers.far, layers.far_depth, np.where(
-        layers.unsplit, whole_depth, np.where(layers.band, layers.near_depth, layers.depth)))
+    farthest = np.where(far, layers.far_depth, np.where(
+        whole, whole_depth, np.where(layers.band, layers.near_depth, layers.depth)))
     return cloud, farthest.astype(np.float32)
 
 
@@ -799,11 +819,12 @@ def build_extended_cloud(
     if photo.shape[0] != cloud_height:  # a rounding apart: conform, views are sized this way
         photo = cv2.resize(photo, (photo.shape[1], cloud_height), interpolation=cv2.INTER_LINEAR)
     photo_view = working_view(scene, (0.0, 0.0, 0.0), cloud_scale)
+    disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     cloud, farthest = layered_cloud(photo, depth, photo_view,
-                                    source_window(scene, plan, cloud_scale), enlargement, relief)
+                                    source_window(scene, plan, cloud_scale), disparity_scale,
+                                    enlargement, relief)
     # a point splats onto the 2 x 2 pixels around it: a fill stays behind all of them
     farthest = cv2.dilate(farthest, np.ones((3, 3), np.uint8))
-    disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
     region = visible_region(scene, plan, cloud_scale)
     start_position = camera_position(plan, scene, 0.0)
     end_position = overshoot(

@@ -92,7 +92,7 @@ def test_extension_adds_points_only_where_the_extreme_views_had_holes():
     assert extension.hole_pixels_end > 0
     assert extension.added_points == sum(extension.hole_pixels_per_view)
     photo_points, _ = layered_cloud(image, depth, working_view(scene, (0.0, 0.0, 0.0)),
-                                    np.ones((H, W), bool))
+                                    np.ones((H, W), bool), scene.focal_px * paper.DISPARITY_MAX_PX)
     assert W * H < len(photo_points) < 1.1 * W * H, "edge pixels are two points, the rest one"
     assert len(extension.cloud) == len(photo_points) + extension.added_points
     assert extension.added_points < 0.1 * W * H
@@ -122,8 +122,9 @@ def test_no_fill_shows_in_the_photos_own_view(shift_px):
     extension = build_extended_cloud(image, depth, plan, scene)
     assert extension.added_points > 1000, "the premise: the move reveals unseen background"
     own_view = working_view(scene, (0.0, 0.0, 0.0))
-    photo_points, _ = layered_cloud(image, depth, own_view, np.ones((H, W), bool))
     disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
+    photo_points, _ = layered_cloud(image, depth, own_view, np.ones((H, W), bool),
+                                    disparity_scale)
     seen = render(photo_points, own_view, disparity_scale).colour
     with_fill = render(extension.cloud, own_view, disparity_scale).colour
     changed = np.abs(with_fill - seen).max(axis=-1)
@@ -347,3 +348,31 @@ def test_fill_points_along_the_visible_regions_edge_have_a_finite_depth(tmp_path
     scene = prepare_scene(photo, tmp_path / "p.png", preset,
                           ClipOptions(planner="center", depth=DepthOptions(backend="file")), {})
     assert np.isfinite(scene.cloud.z).all()
+
+
+@pytest.mark.parametrize("relief", [1.0, 0.25])
+def test_the_start_view_is_the_photo_where_a_card_meets_the_ground(relief):
+    """A card stands at the ground's depth where it touches it, so near its foot the band's
+    two layers lie within the renderer's blend of each other: its soft edge blended into the
+    ground behind as one surface, and the start frame took blocks 100 levels off the photo
+    (grey blocks along a lantern's lower edge, at a quarter of the relief)."""
+    from kbbatch.risk import relieved
+
+    rows = np.arange(H, dtype=np.float32)[:, None]
+    disparity = np.repeat(12 + 28 * rows / (H - 1), W, axis=1)  # a ground plane
+    card = np.zeros((H, W), np.float32)
+    cv2.fillConvexPoly(card, np.array([[100, 40], [220, 40], [220, 120], [160, 160],
+                                       [100, 160]]), 1.0)
+    disparity = np.where(card > 0, 12 + 28 * 160 / (H - 1), disparity).astype(np.float32)
+    ground = np.random.default_rng(1).normal(30, 6, (H, W, 1)).repeat(3, axis=2)
+    alpha = cv2.GaussianBlur(card, (0, 0), 1.2)[..., None]
+    image = np.clip(ground * (1 - alpha) + np.array([225, 222, 210]) * alpha, 0, 255)
+    image = image.astype(np.uint8)
+    depth = relieved(depth_from_disparity(disparity, paper.focal_px(W)), relief)
+    scene = SceneGeometry(W, H, nearest_depth(depth))
+    view = working_view(scene, (0.0, 0.0, 0.0))
+    disparity_scale = scene.focal_px * paper.DISPARITY_MAX_PX
+    points, _ = layered_cloud(image, depth, view, np.ones((H, W), bool), disparity_scale,
+                              relief=relief)
+    error = np.abs(render(points, view, disparity_scale).colour - image).max(axis=-1)
+    assert (error > 10).sum() <= 2, f"the start view is off at {np.argwhere(error > 10)[:5]}"
