@@ -545,10 +545,13 @@ def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
 
     Bridges, joining two of its pieces: a dandelion's stalks (3 px) joined its seeds to its
     parachute; cut, they stayed on the far ground while both ends moved with the card, and
-    broke off. Tips, thin all along and reaching at most TIP_REACH_MAX_PX beyond it: the
-    narrow end of a leaf, cut, stayed on the wall and floated beside the leaf as it moved (photo
-    15, the social preset). A strand with one end free that reaches further (a loose sliver of
-    a suit), or with a thicker part (a fragment the cleaning dropped), stays cut.
+    broke off. Tips, thin all along, reaching beyond it further than the opening's width but
+    at most TIP_REACH_MAX_PX, and no longer than that: the narrow end of a leaf, cut, stayed
+    on the wall and floated beside the leaf as it moved (photo 15, the social preset). A
+    strand with one end free that reaches further (a loose sliver of a suit), runs along the
+    outline (strips of a launch tower beside a rocket: on its card, they bent the tower's lines
+    and the clip lost all its parallax), or has a thicker part (a fragment the cleaning
+    dropped), stays cut.
     """
     strands = original.astype(bool) & ~cleaned
     strand_count, strand_labels = cv2.connectedComponents(strands.astype(np.uint8),
@@ -575,7 +578,14 @@ def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
     beyond = cv2.distanceTransform((~cleaned.astype(bool)).astype(np.uint8), cv2.DIST_L2, 3)
     reach = np.zeros(strand_count, np.float32)
     np.maximum.at(reach, strand_labels[strands], beyond[strands])
-    tips = (touched == 1) & ~has_thick & (reach <= TIP_REACH_MAX_PX)
+    # ... and no longer than that: a strip along the outline (a tower's rail beside a rocket)
+    # is no tip, though it lies near
+    longest_px = 2 * SLIVER_OPEN_PX * TIP_REACH_MAX_PX
+    short = np.bincount(strand_labels[strands], minlength=strand_count) <= longest_px
+    # ... and further than the opening's width: less is the outline's own roughness (the soft
+    # layers' band covers it), and a strip lying along the outline
+    protruding = reach > 2 * SLIVER_OPEN_PX
+    tips = (touched == 1) & ~has_thick & protruding & (reach <= TIP_REACH_MAX_PX) & short
     put_back = bridges | tips
     put_back[0] = False
     return cleaned | put_back[strand_labels]
