@@ -36,7 +36,7 @@ from kbbatch.render import PointCloud
 
 SHARED_PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "photos"
 LEVELS = (10, 30)
-PHOTO_LEVEL = 30
+PHOTO_LEVEL = LEVELS[-1]
 BORDER_PX = 4
 
 
@@ -64,16 +64,18 @@ def photo_at_start(photo: np.ndarray, prepared: PreparedScene, width: int, heigh
     """The photo cut to the start crop at the frame's size: area-averaged to the frame's
     scale, then sampled bilinearly at the frame's pixel centres."""
     crop = prepared.plan.start
-    to_photo = photo.shape[1] / prepared.scene.width_px
-    step_x = crop.width_px * to_photo / width
-    step_y = crop.height_px * to_photo / height
+    # each side its own ratio: the working height is rounded
+    to_photo_x = photo.shape[1] / prepared.scene.width_px
+    to_photo_y = photo.shape[0] / prepared.scene.height_px
+    step_x = crop.width_px * to_photo_x / width
+    step_y = crop.height_px * to_photo_y / height
     small_size = (max(1, round(photo.shape[1] / step_x)), max(1, round(photo.shape[0] / step_y)))
     small = cv2.resize(photo, small_size, interpolation=cv2.INTER_AREA)
     shrink_x = small_size[0] / photo.shape[1]
     shrink_y = small_size[1] / photo.shape[0]
     to_small = np.float32([
-        [step_x * shrink_x, 0, (crop.left_px * to_photo + 0.5 * step_x) * shrink_x - 0.5],
-        [0, step_y * shrink_y, (crop.top_px * to_photo + 0.5 * step_y) * shrink_y - 0.5]])
+        [step_x * shrink_x, 0, (crop.left_px * to_photo_x + 0.5 * step_x) * shrink_x - 0.5],
+        [0, step_y * shrink_y, (crop.top_px * to_photo_y + 0.5 * step_y) * shrink_y - 0.5]])
     return cv2.warpAffine(small, to_small, (width, height), flags=cv2.INTER_LINEAR
                           | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 

@@ -725,14 +725,15 @@ def source_window(scene: SceneGeometry, plan: Plan, scale: float) -> np.ndarray:
     return window
 
 
-def snap_edge_depth(depth: np.ndarray) -> np.ndarray:
+def snap_edge_depth(depth: np.ndarray, relief: float = 1.0) -> np.ndarray:
     """Depth with every depth-edge pixel moved to the nearer or farther side of its edge.
 
     Points are splatted independently, so a rubber sheet only comes from in-between depths
     on a blurred edge; snapping each edge pixel to the side it is closest to (in disparity)
-    removes the sheet while keeping every pixel of the photo, rim colours included.
+    removes the sheet while keeping every pixel of the photo, rim colours included. relief:
+    what depth's relief was scaled by (depth_edges).
     """
-    edges = depth_edges(depth)
+    edges = depth_edges(depth, relief)
     window = np.ones((2 * EDGE_SNAP_RADIUS_PX + 1,) * 2, np.uint8)
     nearest = cv2.erode(depth, window)
     farthest = cv2.dilate(depth, window)
@@ -746,11 +747,13 @@ def layered_cloud(photo: np.ndarray, depth: np.ndarray, view: View, keep: np.nda
                   ) -> tuple[PointCloud, np.ndarray]:
     """The photo as soft layers (kbbatch.layers): one opaque point per pixel away from depth
     edges; within their band a far opaque point with the background's colour and a near point
-    with the object's colour and its alpha matte. Also the depth of the farthest point at
-    each pixel (the surface a fill must stay behind).
+    with the object's colour and its alpha matte, except where the two would lie within
+    LAYER_GAP_MIN_PX of each other: one point, whole, as where no clean background lies near
+    (SoftLayers.unsplit). Also the depth of the farthest point at each pixel (the surface a
+    fill must stay behind).
 
-    A band pixel whose two layers lie within LAYER_GAP_MIN_PX of each other is kept whole,
-    as one where no clean background lies near (SoftLayers.unsplit)."""
+    disparity_scale: inverse depth to working disparity pixels (the renderer's); enlargement
+    and relief: split_layers'."""
     layers = split_layers(photo, depth, enlargement, relief)
     alpha = np.clip(layers.alpha * 255 + 0.5, 1, 255).astype(np.uint8)
     whole_depth = np.where(layers.alpha >= 0.5, layers.near_depth, layers.far_depth)

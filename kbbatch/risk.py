@@ -175,13 +175,15 @@ def count_fragments(depth: np.ndarray) -> int:
     return fragments
 
 
-def end_view_fill(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometry
-                  ) -> tuple[float, float]:
+def end_view_fill(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometry,
+                  relief: float = 1.0) -> tuple[float, float]:
     """Shares of the overshot end view (as framed in the output) that need fill, and that
-    are fill enclosed by a nearer surface."""
+    are fill enclosed by a nearer surface. relief: what depth's relief was scaled by, so that
+    its edges are snapped as the clip's layers split them."""
     from kbbatch.inpaint import near_side_of_holes, snap_edge_depth
 
-    cloud = back_project(photo, snap_edge_depth(depth), working_view(scene, (0.0, 0.0, 0.0)))
+    cloud = back_project(photo, snap_edge_depth(depth, relief),
+                         working_view(scene, (0.0, 0.0, 0.0)))
     start = camera_position(plan, scene, 0.0)
     end = overshoot(start, camera_position(plan, scene, 1.0), paper.EXTREME_VIEW_OVERSHOOT)
     widest = widest_crop(plan)
@@ -354,7 +356,7 @@ def assess(photo: np.ndarray, depth: np.ndarray, plan: Plan, scene: SceneGeometr
         relief_depth = relieved(depth, relief)
         relief_scene = SceneGeometry(scene.width_px, scene.height_px,
                                      nearest_depth(relief_depth))
-        fill, enclosed = end_view_fill(photo, relief_depth, plan, relief_scene)
+        fill, enclosed = end_view_fill(photo, relief_depth, plan, relief_scene, relief)
         bend, tilt = line_distortion(runs, relief_depth, plan, relief_scene)
         if measured is None:
             measured = (fill, enclosed, bend, tilt)

@@ -522,6 +522,11 @@ def _graph_cut(image: np.ndarray, inside: np.ndarray, outside: np.ndarray, mask:
     return result
 
 
+def _sliver_kernel() -> np.ndarray:
+    """The cleaning's opening: a disc of radius SLIVER_OPEN_PX."""
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SLIVER_OPEN_PX + 1,) * 2)
+
+
 def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     """A mask without slivers, speckle holes or small loose pieces.
 
@@ -530,8 +535,7 @@ def clean_mask(mask: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
     Pixels of keep (a face) that were in the mask stay in it, whole.
     """
     binary = mask.astype(np.uint8)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SLIVER_OPEN_PX + 1,) * 2)
-    opened = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
+    opened = cv2.morphologyEx(binary, cv2.MORPH_OPEN, _sliver_kernel())
     if keep is not None:
         opened |= (binary.astype(bool) & keep).astype(np.uint8)
     labels, areas = enclosed_holes(opened)
@@ -546,13 +550,15 @@ def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
     Bridges, joining two of its pieces: a dandelion's stalks (3 px) joined its seeds to its
     parachute; cut, they stayed on the far ground while both ends moved with the card, and
     broke off. Tips, thin all along, reaching beyond it further than the opening's width but
-    at most TIP_REACH_MAX_PX, and no longer than that: the narrow end of a leaf, cut, stayed
+    at most TIP_REACH_MAX_PX, and of no more pixels than a strand as wide as the opening and
+    as long as that: the narrow end of a leaf, cut, stayed
     on the wall and floated beside the leaf as it moved (photo 15, the social preset). A
     strand with one end free that reaches further (a loose sliver of a suit), runs along the
     outline (strips of a launch tower beside a rocket: on its card, they bent the tower's lines
     and the clip lost all its parallax), or has a thicker part (a fragment the cleaning
     dropped), stays cut.
     """
+    cleaned = cleaned.astype(bool)
     strands = original.astype(bool) & ~cleaned
     strand_count, strand_labels = cv2.connectedComponents(strands.astype(np.uint8),
                                                           connectivity=8)
@@ -572,19 +578,20 @@ def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
     touched = np.bincount(pairs[:, 0], minlength=strand_count)
     bridges = touched >= 2
     # A tip: no part of it survives the opening on its own, and it ends near the piece.
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SLIVER_OPEN_PX + 1,) * 2)
-    thick = cv2.morphologyEx(strands.astype(np.uint8), cv2.MORPH_OPEN, kernel) > 0
+    thick = cv2.morphologyEx(strands.astype(np.uint8), cv2.MORPH_OPEN, _sliver_kernel()) > 0
     has_thick = np.bincount(strand_labels[thick], minlength=strand_count) > 0
-    beyond = cv2.distanceTransform((~cleaned.astype(bool)).astype(np.uint8), cv2.DIST_L2, 3)
+    beyond = cv2.distanceTransform((~cleaned).astype(np.uint8), cv2.DIST_L2,
+                                   cv2.DIST_MASK_PRECISE)
     reach = np.zeros(strand_count, np.float32)
     np.maximum.at(reach, strand_labels[strands], beyond[strands])
     # ... and no longer than that: a strip along the outline (a tower's rail beside a rocket)
     # is no tip, though it lies near
-    longest_px = 2 * SLIVER_OPEN_PX * TIP_REACH_MAX_PX
+    opening_width_px = 2 * SLIVER_OPEN_PX
+    longest_px = opening_width_px * TIP_REACH_MAX_PX
     short = np.bincount(strand_labels[strands], minlength=strand_count) <= longest_px
     # ... and further than the opening's width: less is the outline's own roughness (the soft
     # layers' band covers it), and a strip lying along the outline
-    protruding = reach > 2 * SLIVER_OPEN_PX
+    protruding = reach > opening_width_px
     tips = (touched == 1) & ~has_thick & protruding & (reach <= TIP_REACH_MAX_PX) & short
     put_back = bridges | tips
     put_back[0] = False

@@ -50,6 +50,13 @@ def start_daemon(inbox: Path, outbox: Path, preset: Path, *extra: str,
     return subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, preexec_fn=preexec_fn)
 
 
+def clip_parts(folder: Path) -> list[Path]:
+    """Clips being written: their temporary files (any `.part` file is not enough: the daemon
+    writes its inbox note through one at its start, and a kill -9 timed by it came before any
+    job had started)."""
+    return list(folder.glob(".*.part.mp4"))
+
+
 def clips_in(folder: Path) -> list[str]:
     """Finished clips: visible .mp4 files (temporary ones are hidden)."""
     return sorted(p.name for p in folder.glob("*.mp4") if not p.name.startswith("."))
@@ -165,7 +172,7 @@ def test_kill_9_mid_encode_then_restart_gives_exactly_one_clip(tmp_path):
     shutil.copy(photo, inbox / photo.name)
     daemon = start_daemon(inbox, outbox, preset)
     try:
-        wait_for(lambda: list(outbox.glob(".*.part*")), 120, "a clip being encoded")
+        wait_for(lambda: clip_parts(outbox), 120, "a clip being encoded")
     finally:
         daemon.send_signal(signal.SIGKILL)
         daemon.wait(timeout=30)
@@ -228,7 +235,7 @@ def test_a_hang_up_stops_the_daemon_as_sigterm_does(tmp_path):
     try:
         time.sleep(1.5)
         shutil.copy(shared_photos(1)[0], inbox / "a.jpg")
-        wait_for(lambda: list(outbox.glob(".*.part*")), 120, "a clip being encoded")
+        wait_for(lambda: clip_parts(outbox), 120, "a clip being encoded")
         daemon.send_signal(signal.SIGHUP)
         assert daemon.wait(timeout=120) == 0
     finally:

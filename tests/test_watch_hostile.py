@@ -21,7 +21,15 @@ from kbbatch.journal import Journal
 
 from .conftest import textured_image
 from .test_nothing_lost import fill, tiny_mount  # noqa: F401 - a fixture
-from .test_watch import clips_in, finished_jobs, preset_file, start_daemon, stop, wait_for
+from .test_watch import (
+    clip_parts,
+    clips_in,
+    finished_jobs,
+    preset_file,
+    start_daemon,
+    stop,
+    wait_for,
+)
 
 pytestmark = pytest.mark.slow
 CLI = [sys.executable, "-m", "kbbatch"]
@@ -254,7 +262,7 @@ def worker_pids(daemon: subprocess.Popen) -> list[int]:
 
 
 def kill_worker_mid_clip(daemon: subprocess.Popen, outbox: Path) -> None:
-    wait_for(lambda: list(outbox.glob(".*.part*")) and worker_pids(daemon), 180,
+    wait_for(lambda: clip_parts(outbox) and worker_pids(daemon), 180,
              "a clip being encoded")
     for pid in worker_pids(daemon):
         os.kill(pid, signal.SIGKILL)
@@ -316,7 +324,7 @@ def test_photos_in_flight_beside_a_dead_worker_are_not_blamed(tmp_path):
         drop(inbox, name, photo_bytes(tmp_path, seed))
     daemon = start_daemon(inbox, outbox, preset, "--jobs", "2")
     try:
-        wait_for(lambda: len(list(outbox.glob(".*.part*"))) == 2
+        wait_for(lambda: len(clip_parts(outbox)) == 2
                  and len(worker_pids(daemon)) == 2, 180, "two clips being encoded")
         os.kill(worker_pids(daemon)[0], signal.SIGKILL)  # one worker only
         wait_for(lambda: finished_jobs(outbox) == 2, 400, "both clips")
