@@ -46,14 +46,15 @@ def no_extension(cloud, view, disparity_scale, region, working_scale, inpainter=
     return PointCloud(empty, empty, empty, np.empty((0, 3), np.uint8)), 0
 
 
-def first_frame(photo_path: Path, extended: bool) -> tuple[np.ndarray, PreparedScene]:
+def first_frame(photo_path: Path, photo: np.ndarray, extended: bool
+                ) -> tuple[np.ndarray, PreparedScene]:
     preset = load_preset("slideshow")
     options = ClipOptions(threads=2, cache_depth=True)
     real = inpaint.extend_at_view
     if not extended:
         inpaint.extend_at_view = no_extension
     try:
-        prepared = prepare_scene(read_image(photo_path), photo_path, preset, options, {})
+        prepared = prepare_scene(photo, photo_path, preset, options, {})
     finally:
         inpaint.extend_at_view = real
     return frame_at(prepared, preset, 0.0).astype(np.int16), prepared
@@ -90,10 +91,11 @@ def main() -> int:
     print(f"{'photo':<40}" + "".join(f"{f'> {level} levels':>16}" for level in LEVELS)
           + f"{f'photo > {PHOTO_LEVEL}':>16}")
     for photo in photos:
-        frame, prepared = first_frame(photo, True)
-        change = np.abs(frame - first_frame(photo, False)[0]).max(axis=-1)
+        pixels = read_image(photo)
+        frame, prepared = first_frame(photo, pixels, True)
+        change = np.abs(frame - first_frame(photo, pixels, False)[0]).max(axis=-1)
         height, width = frame.shape[:2]
-        expected = photo_at_start(read_image(photo), prepared, width, height).astype(np.int16)
+        expected = photo_at_start(pixels, prepared, width, height).astype(np.int16)
         off = np.abs(frame - expected).max(axis=-1)[BORDER_PX:-BORDER_PX, BORDER_PX:-BORDER_PX]
         print(f"{photo.name[:39]:<40}"
               + "".join(f"{100 * np.mean(change > level):>15.3f}%" for level in LEVELS)

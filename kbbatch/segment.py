@@ -551,12 +551,11 @@ def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
     parachute; cut, they stayed on the far ground while both ends moved with the card, and
     broke off. Tips, thin all along, reaching beyond it further than the opening's width but
     at most TIP_REACH_MAX_PX, and of no more pixels than a strand as wide as the opening and
-    as long as that: the narrow end of a leaf, cut, stayed
-    on the wall and floated beside the leaf as it moved (photo 15, the social preset). A
-    strand with one end free that reaches further (a loose sliver of a suit), runs along the
-    outline (strips of a launch tower beside a rocket: on its card, they bent the tower's lines
-    and the clip lost all its parallax), or has a thicker part (a fragment the cleaning
-    dropped), stays cut.
+    as long as that: the narrow end of a leaf, cut, stayed on the wall and floated beside the
+    leaf as it moved (photo 15, the social preset). A strand with one end free that reaches
+    further (a loose sliver of a suit), runs along the outline (strips of a launch tower
+    beside a rocket: on its card, they bent the tower's lines and the clip lost all its
+    parallax), or has a thicker part (a fragment the cleaning dropped), stays cut.
     """
     cleaned = cleaned.astype(bool)
     strands = original.astype(bool) & ~cleaned
@@ -577,22 +576,20 @@ def with_strands(cleaned: np.ndarray, original: np.ndarray) -> np.ndarray:
     pairs = pairs[pairs[:, 1] < piece_count]
     touched = np.bincount(pairs[:, 0], minlength=strand_count)
     bridges = touched >= 2
-    # A tip: no part of it survives the opening on its own, and it ends near the piece.
+    # A tip: no part of it survives the opening on its own; it reaches beyond the piece
+    # further than the opening's width (less is the outline's own roughness, which the soft
+    # layers' band covers) but not far; and it is short (a strip along the outline, a tower's
+    # rail beside a rocket, lies near but is no tip).
     thick = cv2.morphologyEx(strands.astype(np.uint8), cv2.MORPH_OPEN, _sliver_kernel()) > 0
     has_thick = np.bincount(strand_labels[thick], minlength=strand_count) > 0
     beyond = cv2.distanceTransform((~cleaned).astype(np.uint8), cv2.DIST_L2,
                                    cv2.DIST_MASK_PRECISE)
     reach = np.zeros(strand_count, np.float32)
     np.maximum.at(reach, strand_labels[strands], beyond[strands])
-    # ... and no longer than that: a strip along the outline (a tower's rail beside a rocket)
-    # is no tip, though it lies near
     opening_width_px = 2 * SLIVER_OPEN_PX
-    longest_px = opening_width_px * TIP_REACH_MAX_PX
-    short = np.bincount(strand_labels[strands], minlength=strand_count) <= longest_px
-    # ... and further than the opening's width: less is the outline's own roughness (the soft
-    # layers' band covers it), and a strip lying along the outline
-    protruding = reach > opening_width_px
-    tips = (touched == 1) & ~has_thick & protruding & (reach <= TIP_REACH_MAX_PX) & short
+    size_px = np.bincount(strand_labels[strands], minlength=strand_count)
+    tips = ((touched == 1) & ~has_thick & (reach > opening_width_px)
+            & (reach <= TIP_REACH_MAX_PX) & (size_px <= opening_width_px * TIP_REACH_MAX_PX))
     put_back = bridges | tips
     put_back[0] = False
     return cleaned | put_back[strand_labels]
