@@ -470,3 +470,36 @@ def test_a_relieved_depth_is_split_along_the_same_edges():
     assert np.array_equal(depth_edges(quarter, 0.25), depth_edges(depth))
     assert np.array_equal(split_layers(photo, quarter, relief=0.25).band, full_band)
     assert not depth_edges(relieved(depth, 0.0), 0.0).any()
+
+
+def test_a_background_coloured_speck_inside_an_object_leaves_no_point_behind():
+    """A patch inside an object that the matte reads as partly transparent, with no pixel
+    below half alpha, is the object's own: no background point is made behind it. A guessed
+    background colour there stayed behind as a dark speck in the fill once the object moved
+    off it (photo 03 at 4K: drips beside a head)."""
+    height, width = 120, 160
+    rng = np.random.default_rng(5)
+    background = rng.integers(0, 60, (height, width, 3)).astype(np.float32)
+    background[..., 1] += 150  # a green texture
+    grey = np.array([90, 70, 80], np.float32)
+    alpha = np.zeros((height, width), np.float32)
+    alpha[30:90, 40:100] = 1.0
+    alpha = cv2.GaussianBlur(alpha, (0, 0), 0.8)
+    photo = background * (1 - alpha[..., None]) + grey * alpha[..., None]
+    # a green speck in the object's grain, 4 px inside its left edge
+    photo[58:61, 44:46] = 0.6 * background[58:61, 44:46] + 0.4 * grey
+    disparity = np.where(alpha >= 0.5, 1.0, 0.25).astype(np.float32)
+    photo = np.clip(photo, 0, 255).astype(np.uint8)
+    layers = split_layers(photo, 1.0 / disparity)
+    assert layers.band[58:61, 44:46].all()
+    # the speck is opaque object, with the photo's colour, and nothing lies behind it
+    assert (layers.alpha[58:61, 44:46] == 1.0).all()
+    assert not layers.far[58:61, 44:46].any()
+    assert (layers.foreground[58:61, 44:46] == photo[58:61, 44:46]).all()
+    # every background point behind a partly transparent pixel continues to where the object
+    # is seen through: no island of them inside it
+    count, labels = cv2.connectedComponents(layers.far.astype(np.uint8), connectivity=8)
+    for label in range(1, count):
+        assert layers.alpha[labels == label].min() < 0.5
+    # the real soft edge keeps its background
+    assert layers.far[59, 36:40].all()
