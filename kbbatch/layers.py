@@ -109,6 +109,7 @@ noise inside a head's hair or ear), not a view through it: it is made opaque. It
 point, a guess behind a pixel the object nearly hides, stayed behind as a dark speck in the
 fill once the object moved off it (photo 03 at 4K)."""
 
+
 @dataclass(frozen=True)
 class SoftLayers:
     """Per pixel of the photo at the cloud's density.
