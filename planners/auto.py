@@ -54,6 +54,17 @@ allows it: the least-disocclusion objective alone likes to crop heads off."""
 
 HEAD_MARGIN_FRACTION = 0.05
 
+HEAD_TOP_CUT_FRACTION = 0.1
+"""An end crop may cut this share of a head's height (twice its centre's depth below its top:
+a person's box top, an animal's highest outline point) off its top, the top of the hair, as a
+close-up does; no more where another searched crop cuts less. Keeping the head's centre
+alone, the end crops of photos 01 to 03 cut through the hairline or the forehead at every
+preset (02 at `slideshow`: 63 of its head's 234 working px)."""
+
+HEAD_TOP_SLACK_FRACTION = 0.01
+"""Crops cutting up to this share of their height more than the least cut are as good (the
+rest of the search, disocclusion first, chooses among them)."""
+
 HEAD_HALF_WIDTH_FRACTION = 1 / 6
 """A person's head is about a third of its box's width (the shoulders' width or more): a
 crop keeps the whole of it, not its centre alone (a vertical end crop kept a man's head
@@ -136,11 +147,12 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Head:
-    """Where an object's head is, in working px: its centre and half its width."""
+    """Where an object's head is, in working px: its centre, half its width and its top."""
 
     x_px: float
     y_px: float
     half_width_px: float
+    top_px: float
 
 
 def wide_and_tight(request: PlanRequest, head: Head | None = None,
@@ -256,7 +268,7 @@ class Subject:
 
     def top_head(self) -> Head:
         """The subject's top: what a crop that cannot hold it all keeps."""
-        return Head(self.top_x, self.top, 0.0)
+        return Head(self.top_x, self.top, 0.0, self.top)
 
     def framed_by(self, wide: Crop) -> Crop:
         """wide moved, within START_CROP_FRACTION of the photo, to where it holds the most of
@@ -333,7 +345,7 @@ def head_of(request: PlanRequest, found: Detection) -> Head:
     where framing is free (framing_mask), below the highest point of its salient outline,
     as wide as the piece of the outline there."""
     x0, y0, x1, y1 = found.box
-    centre = Head(*box_point(found.box, HEAD_HEIGHT), HEAD_HALF_WIDTH_FRACTION * (x1 - x0))
+    centre = Head(*box_point(found.box, HEAD_HEIGHT), HEAD_HALF_WIDTH_FRACTION * (x1 - x0), y0)
     salient = framing_mask(request) if found.class_name in ANIMAL_CLASSES else None
     if salient is None:
         return centre
@@ -347,7 +359,7 @@ def head_of(request: PlanRequest, found: Detection) -> Head:
     head = pieces == pieces[0, np.flatnonzero(band[0])[0]]  # the piece the highest point is in
     columns = np.nonzero(head)[1]
     return Head(left + float(columns.mean()), top + highest + HEAD_HEIGHT * (y1 - y0),
-                (columns.max() - columns.min() + 1) / 2)
+                (columns.max() - columns.min() + 1) / 2, float(top + highest))
 
 
 def box_point(box: tuple[float, float, float, float], height_fraction: float
@@ -450,6 +462,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
         ranks = [kept(c) for c in candidates]
         most = max(ranks)
         candidates = [c for c, rank in zip(candidates, ranks, strict=True) if rank == most]
+        candidates = least_cut_heads(candidates, heads)
     elif subject is not None:
         framed = []
         if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from
@@ -459,6 +472,24 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
             framed = [c for c in candidates if subject.held_by(c.crop) >= least]
         candidates = framed or candidates
     return wide, candidates, tight
+
+
+def head_top_cut_px(crop: Crop, heads: list[Head]) -> float:
+    """How much more the crop cuts off the tops of the heads it shows (their centres inside
+    it) than HEAD_TOP_CUT_FRACTION of their heights allows."""
+    shown = [h for h in heads if crop.left_px <= h.x_px <= crop.right_px]
+    return max((crop.top_px - h.top_px - HEAD_TOP_CUT_FRACTION * 2 * (h.y_px - h.top_px)
+                for h in shown), default=0.0)
+
+
+def least_cut_heads(candidates: list[Candidate], heads: list[Head]) -> list[Candidate]:
+    """The candidates that cut the least off the tops of the heads they show
+    (HEAD_TOP_CUT_FRACTION, HEAD_TOP_SLACK_FRACTION)."""
+    if not candidates:
+        return candidates
+    cuts = [max(0.0, head_top_cut_px(c.crop, heads)) for c in candidates]
+    slack = HEAD_TOP_SLACK_FRACTION * candidates[0].crop.height_px
+    return [c for c, cut in zip(candidates, cuts, strict=True) if cut <= min(cuts) + slack]
 
 
 def best(candidates: list[Candidate], tight: Crop) -> Crop:

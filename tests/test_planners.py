@@ -228,6 +228,46 @@ def test_real_walrus_face_is_in_both_crops_of_a_vertical_clip(monkeypatch):
         assert crop.top_px <= face[1] and crop.bottom_px >= face[3], crop
 
 
+def test_real_hairline_is_in_both_crops_of_a_vertical_clip(monkeypatch):
+    """Photo 02: a portrait whose hair reaches 28 px from the top and whose forehead begins at
+    about 62 (working px). The end crop kept the head's centre and cut through the forehead
+    (its top edge at 81), for less disocclusion."""
+    from kbbatch.images import read_image
+    from kbbatch.pipeline import plan_photo, working_depth
+
+    from .test_crowds import real_models_or_skip
+
+    real_models_or_skip(monkeypatch)
+    [path] = [p for p in shared_photos(1)[0].parent.glob("02_*obama*")] or [None]
+    if path is None:
+        pytest.skip("photo 02 (the portrait) not found in ../shared/photos")
+    photo = read_image(path)
+    working, depth_result, depth = working_depth(photo, path, ClipOptions(cache_depth=False))
+    assert working.shape[:2] == (1024, 820)
+    plan = plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    for crop in (plan.start, plan.end):
+        assert crop.top_px <= 55, crop  # some hair above the hairline stays in
+
+
+def test_of_end_crops_keeping_a_head_those_cutting_least_off_its_top_are_searched():
+    from kbbatch.planners.auto import Candidate, Head, least_cut_heads
+
+    # 100 px tall (its centre 50 below its top at 40): 10 px may go (the top of the hair)
+    head = Head(x_px=400.0, y_px=90.0, half_width_px=60.0, top_px=40.0)
+    other = Head(x_px=900.0, y_px=50.0, half_width_px=60.0, top_px=0.0)  # not in any crop
+
+    def kept_tops(tops: list[float]) -> list[float]:
+        candidates = [Candidate(Crop(400.0, top + 200.0, 360.0, 400.0), 0.0, 0.0)
+                      for top in tops]
+        return [c.crop.top_px for c in least_cut_heads(candidates, [head, other])]
+
+    # None cuts more than 10 px; 4 px more (1 % of the crop's 400) are as good.
+    assert kept_tops([0.0, 30.0, 48.0, 52.0, 54.0, 58.0, 90.0]) == [0.0, 30.0, 48.0, 52.0, 54.0]
+    # Where every crop cuts more, the least cut is searched (10 px more, and 12 within slack).
+    assert kept_tops([60.0, 62.0, 70.0]) == [60.0, 62.0]
+    assert least_cut_heads([], [head]) == []
+
+
 def test_zoom_out_swaps_the_ends():
     plan = get_planner("auto").plan(request_for(1024, 683, "slideshow", zoom_direction="out"))
     assert plan.start.width_px < plan.end.width_px
