@@ -105,6 +105,26 @@ def test_a_subject_taller_than_the_crop_is_framed_from_its_top():
     assert plan.start.center_y_px == pytest.approx(512)
 
 
+def test_a_subject_whose_top_the_centred_crop_cuts_is_framed_with_it():
+    """The Middlebury Teddy scene: a bear on a box, which a centred 16:9 crop of the 6:5 photo
+    holds but for the bear's head (a few % of the subject's area, under the 10 % gain that
+    moves a crop): the start and the end frame cut the head off."""
+    import cv2
+
+    bear = np.zeros((853, 1024), np.float32)
+    bear[160:630, 600:900] = 0.9  # the box and the bear's body
+    cv2.ellipse(bear, (750, 118), (60, 42), 0, 0, 360, 0.9, -1)  # its head, top at 76
+    plan = get_planner("auto").plan(subject_request("slideshow", bear))
+    assert plan.start.top_px <= 76 and plan.start.bottom_px >= 630, plan.start
+    assert plan.end.top_px <= 76 + 0.01 * plan.end.height_px, plan.end
+    # A subject reaching the photo's top (a face filling it, a lantern's string) has no top
+    # to keep: the end crop is not pinned to the photo's edge.
+    face = np.zeros((853, 1024), np.float32)
+    face[0:700, 200:900] = 0.9
+    plan = get_planner("auto").plan(subject_request("slideshow", face))
+    assert plan.end.top_px > 20, plan.end
+
+
 def test_an_animal_head_is_the_highest_point_of_its_outline(monkeypatch):
     """A walrus lying on a beach holds its head up at one end of its box: the box's top
     centre is its back. A person's head stays the box's top centre (raised arms are higher)."""
@@ -250,7 +270,7 @@ def test_real_hairline_is_in_both_crops_of_a_vertical_clip(monkeypatch):
 
 
 def test_of_end_crops_keeping_a_head_those_cutting_least_off_its_top_are_searched():
-    from kbbatch.planners.auto import Candidate, Head, least_cut_heads
+    from kbbatch.planners.auto import Candidate, Head, head_top_cut_px, least_cut
 
     # 100 px tall (its centre 50 below its top at 40): 10 px may go (the top of the hair)
     head = Head(x_px=400.0, y_px=90.0, half_width_px=60.0, top_px=40.0)
@@ -259,13 +279,14 @@ def test_of_end_crops_keeping_a_head_those_cutting_least_off_its_top_are_searche
     def kept_tops(tops: list[float]) -> list[float]:
         candidates = [Candidate(Crop(400.0, top + 200.0, 360.0, 400.0), 0.0, 0.0)
                       for top in tops]
-        return [c.crop.top_px for c in least_cut_heads(candidates, [head, other])]
+        kept = least_cut(candidates, lambda crop: head_top_cut_px(crop, [head, other]))
+        return [c.crop.top_px for c in kept]
 
     # None cuts more than 10 px; 4 px more (1 % of the crop's 400) are as good.
     assert kept_tops([0.0, 30.0, 48.0, 52.0, 54.0, 58.0, 90.0]) == [0.0, 30.0, 48.0, 52.0, 54.0]
     # Where every crop cuts more, the least cut is searched (10 px more, and 12 within slack).
     assert kept_tops([60.0, 62.0, 70.0]) == [60.0, 62.0]
-    assert least_cut_heads([], [head]) == []
+    assert least_cut([], lambda crop: 0.0) == []
 
 
 def test_zoom_out_swaps_the_ends():
