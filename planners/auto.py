@@ -272,6 +272,18 @@ class Subject:
         the lantern low in the frame)."""
         return self.has_top() and self.top > crop_margins(*self.shape[::-1])[1]
 
+    def cut_px(self, left: np.ndarray | float, top: np.ndarray | float,
+               right: np.ndarray | float) -> np.ndarray:
+        """How far windows (edges in working px) cut into the subject's extent: into its top
+        where it shows_own_top, into its sides where the extent is no wider than they are (a
+        lantern's side, by 8 px, centred in a square clip)."""
+        cut = np.zeros(np.broadcast(left, top, right).shape)
+        if self.shows_own_top():
+            cut = np.maximum(cut, np.asarray(top) - self.top)
+        fits = np.asarray(right) - np.asarray(left) >= self.right - self.left
+        sides = np.maximum(np.asarray(left) - self.left, self.right - np.asarray(right))
+        return np.maximum(cut, np.where(fits, sides, 0.0))
+
     def too_tall_for(self, crop: Crop) -> bool:
         """Whether the subject fits the crop's width but not its height (a person, an animal,
         a tower in a portrait photo under a landscape preset)."""
@@ -309,17 +321,17 @@ class Subject:
             row = int(np.argmin(np.abs(ys - np.clip(top_y, ys.min(), ys.max()))))
             held, ys = held[row:row + 1], ys[row:row + 1]
             grid_x, grid_y = grid_x[row:row + 1], grid_y[row:row + 1]
-        shows_top = self.shows_own_top() & (grid_y - wide.height_px / 2 <= self.top)
-        # moved for clearly more of the subject, or to show the top of one it cuts
-        top_shown = (wide.top_px > self.top
-                     and (shows_top & (held >= SUBJECT_WHOLE_FRACTION * self.area)).any())
+        cuts = self.cut_px(grid_x - wide.width_px / 2, grid_y - wide.height_px / 2,
+                           grid_x + wide.width_px / 2)
+        # moved for clearly more of the subject, or to cut less into its top or sides
+        cuts_less = (cuts < self.cut_px(wide.left_px, wide.top_px, wide.right_px) - 1.0) & (
+            held >= SUBJECT_WHOLE_FRACTION * self.area)
         gains = held.max() >= self.held_by(wide) + SUBJECT_GAIN_FRACTION * self.area
         if not self.too_tall_for(wide) and (held.max() < SUBJECT_WHOLE_FRACTION * self.area
-                                            or not (gains or top_shown)):
+                                            or not (gains or cuts_less.any())):
             return wide
         good = held >= held.max() - SUBJECT_TIE_FRACTION * self.area
-        if (good & shows_top).any():  # of those, the ones showing its top, where any does
-            good &= shows_top
+        good &= cuts <= cuts[good].min() + 1.0  # of those, the ones cutting least into it
         distance = np.hypot(grid_x - self.centre[0], grid_y - self.centre[1])
         row, column = np.unravel_index(np.argmin(np.where(good, distance, np.inf)), held.shape)
         return zoomed(wide, 1.0, (float(xs[column]), float(ys[row])))
@@ -485,8 +497,9 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
         candidates = [c for c, rank in zip(candidates, ranks, strict=True) if rank == most]
         candidates = least_cut(candidates, lambda crop: head_top_cut_px(crop, heads))
     elif subject is not None:
-        if subject.shows_own_top():  # its top first, then the most of it
-            candidates = least_cut(candidates, lambda crop: crop.top_px - subject.top)
+        # its top and sides first, then the most of it
+        candidates = least_cut(candidates, lambda crop: float(subject.cut_px(
+            crop.left_px, crop.top_px, crop.right_px)))
         framed = []
         if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from
             framed = [c for c in candidates if keeps(c.crop, subject.top_head())]
