@@ -215,22 +215,28 @@ def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
     assert not asked
 
 
-def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
+def real_social_plan(monkeypatch, pattern: str, what: str, working_shape: tuple[int, int]):
+    """The depth stage's result and the auto plan at `social` of a shared photo, with the real
+    segmentation models (skips without them or the photo)."""
     from kbbatch.images import read_image
     from kbbatch.pipeline import plan_photo, working_depth
 
     from .test_crowds import real_models_or_skip
 
     real_models_or_skip(monkeypatch)
-    [path] = [p for p in shared_photos(1)[0].parent.glob("20_*lantern*")] or [None]
+    [path] = [p for p in shared_photos(1)[0].parent.glob(pattern)] or [None]
     if path is None:
-        pytest.skip("photo 20 (the lantern) not found in ../shared/photos")
-    options = ClipOptions(cache_depth=False)
+        pytest.skip(f"{what} not found in ../shared/photos")
     photo = read_image(path)
-    working, depth_result, depth = working_depth(photo, path, options)
-    plan = plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    working, depth_result, depth = working_depth(photo, path, ClipOptions(cache_depth=False))
+    assert working.shape[:2] == working_shape
+    return depth_result, plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+
+
+def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
+    depth_result, plan = real_social_plan(monkeypatch, "20_*lantern*", "photo 20 (the lantern)",
+                                          (683, 1024))
     salient = depth_result.segmentation.saliency >= 0.5
-    ys, xs = np.nonzero(salient)
     for crop in (plan.start, plan.end):
         inside = salient[:, int(crop.left_px):int(crop.right_px) + 1].sum() / salient.sum()
         assert inside > 0.95, f"{inside:.2f} of the lantern in the {crop}"
@@ -239,19 +245,8 @@ def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
 def test_real_walrus_face_is_in_both_crops_of_a_vertical_clip(monkeypatch):
     """Photo 09: the big walrus (YOLOX: "elephant") holds its head up at the right end of its
     box; framed by the box's top centre, the vertical clip cut its face in half."""
-    from kbbatch.images import read_image
-    from kbbatch.pipeline import plan_photo, working_depth
-
-    from .test_crowds import real_models_or_skip
-
-    real_models_or_skip(monkeypatch)
-    [path] = [p for p in shared_photos(1)[0].parent.glob("09_*walrus*")] or [None]
-    if path is None:
-        pytest.skip("photo 09 (the walruses) not found in ../shared/photos")
-    photo = read_image(path)
-    working, depth_result, depth = working_depth(photo, path, ClipOptions(cache_depth=False))
-    assert working.shape[:2] == (731, 1024)
-    plan = plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    _, plan = real_social_plan(monkeypatch, "09_*walrus*", "photo 09 (the walruses)",
+                               (731, 1024))
     face = (785, 190, 900, 300)  # working px, looked up on the photo: brow to tusks' roots
     for crop in (plan.start, plan.end):
         assert crop.left_px <= face[0] and crop.right_px >= face[2], crop
@@ -262,19 +257,7 @@ def test_real_hairline_is_in_both_crops_of_a_vertical_clip(monkeypatch):
     """Photo 02: a portrait whose hair reaches 28 px from the top and whose forehead begins at
     about 62 (working px). The end crop kept the head's centre and cut through the forehead
     (its top edge at 81), for less disocclusion."""
-    from kbbatch.images import read_image
-    from kbbatch.pipeline import plan_photo, working_depth
-
-    from .test_crowds import real_models_or_skip
-
-    real_models_or_skip(monkeypatch)
-    [path] = [p for p in shared_photos(1)[0].parent.glob("02_*obama*")] or [None]
-    if path is None:
-        pytest.skip("photo 02 (the portrait) not found in ../shared/photos")
-    photo = read_image(path)
-    working, depth_result, depth = working_depth(photo, path, ClipOptions(cache_depth=False))
-    assert working.shape[:2] == (1024, 820)
-    plan = plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    _, plan = real_social_plan(monkeypatch, "02_*obama*", "photo 02 (the portrait)", (1024, 820))
     for crop in (plan.start, plan.end):
         assert crop.top_px <= 55, crop  # some hair above the hairline stays in
 
