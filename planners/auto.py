@@ -62,9 +62,10 @@ close-up does; no more where another searched crop cuts less. Keeping the head's
 alone, the end crops of photos 01 to 03 cut through the hairline or the forehead at every
 preset (02 at `slideshow`: 63 of its head's 234 working px)."""
 
-HEAD_TOP_SLACK_FRACTION = 0.01
-"""Crops cutting up to this share of their height more than the least cut are as good (the
-rest of the search, disocclusion first, chooses among them)."""
+CUT_SLACK_FRACTION = 0.01
+"""End crops cutting up to this share of their height more than the least cut (off the heads'
+tops, or into a subject) are as good (the rest of the search, disocclusion first, chooses
+among them)."""
 
 HEAD_HALF_WIDTH_FRACTION = 1 / 6
 """A person's head is about a third of its box's width (the shoulders' width or more): a
@@ -114,6 +115,10 @@ that centres the subject best is taken."""
 
 SUBJECT_STEP_PX = 4
 """Placements are tried this far apart (working px)."""
+
+SUBJECT_CUT_TOLERANCE_PX = 1.0
+"""Placements cutting within this of each other into the subject cut it alike (their edges
+are rounded to whole pixels)."""
 
 SUBJECT_PIECE_FRACTION = 0.01
 """The subject's extent (top, bottom, sides) is that of its pieces of at least this share of
@@ -296,12 +301,12 @@ class Subject:
 
     def framed_by(self, wide: Crop) -> Crop:
         """wide moved, within START_CROP_FRACTION of the photo, to where it holds the most of
-        the subject, if that is most of it and clearly more than where it is, or shows the
-        top of a solid subject that it cuts (the Middlebury Teddy scene: centred, a 16:9 clip
-        cut the bear's head, 8 % of what ISNet held salient); of such places, those showing
-        its top where any does, and of them the one nearest to centring the subject (its
-        edge, at the nearest place to the photo's centre, is cut first when the crop zooms
-        in). A subject too tall for it is framed from its top (SUBJECT_HEADROOM_FRACTION)."""
+        the subject, if that is most of it and clearly more than where it is, or cuts less
+        into its top or sides (cut_px; the Middlebury Teddy scene: centred, a 16:9 clip cut the
+        bear's head, 8 % of what ISNet held salient); of such places, those cutting least into
+        it, and of them the one nearest to centring the subject (its edge, at the nearest
+        place to the photo's centre, is cut first when the crop zooms in). A subject too tall
+        for it is framed from its top (SUBJECT_HEADROOM_FRACTION)."""
         if self.area <= 0:
             return wide
         height, width = self.shape
@@ -316,7 +321,8 @@ class Subject:
         grid_x, grid_y = np.meshgrid(xs, ys)
         held = self.held(grid_x - wide.width_px / 2, grid_y - wide.height_px / 2,
                          grid_x + wide.width_px / 2, grid_y + wide.height_px / 2)
-        if self.too_tall_for(wide):
+        too_tall = self.too_tall_for(wide)
+        if too_tall:
             top_y = self.top - SUBJECT_HEADROOM_FRACTION * wide.height_px + wide.height_px / 2
             row = int(np.argmin(np.abs(ys - np.clip(top_y, ys.min(), ys.max()))))
             held, ys = held[row:row + 1], ys[row:row + 1]
@@ -324,14 +330,15 @@ class Subject:
         cuts = self.cut_px(grid_x - wide.width_px / 2, grid_y - wide.height_px / 2,
                            grid_x + wide.width_px / 2)
         # moved for clearly more of the subject, or to cut less into its top or sides
-        cuts_less = (cuts < self.cut_px(wide.left_px, wide.top_px, wide.right_px) - 1.0) & (
-            held >= SUBJECT_WHOLE_FRACTION * self.area)
+        cut_now = self.cut_px(wide.left_px, wide.top_px, wide.right_px)
+        cuts_less = ((cuts < cut_now - SUBJECT_CUT_TOLERANCE_PX)
+                     & (held >= SUBJECT_WHOLE_FRACTION * self.area))
         gains = held.max() >= self.held_by(wide) + SUBJECT_GAIN_FRACTION * self.area
-        if not self.too_tall_for(wide) and (held.max() < SUBJECT_WHOLE_FRACTION * self.area
-                                            or not (gains or cuts_less.any())):
+        if not too_tall and (held.max() < SUBJECT_WHOLE_FRACTION * self.area
+                             or not (gains or cuts_less.any())):
             return wide
         good = held >= held.max() - SUBJECT_TIE_FRACTION * self.area
-        good &= cuts <= cuts[good].min() + 1.0  # of those, the ones cutting least into it
+        good &= cuts <= cuts[good].min() + SUBJECT_CUT_TOLERANCE_PX  # of those, the least cut
         distance = np.hypot(grid_x - self.centre[0], grid_y - self.centre[1])
         row, column = np.unravel_index(np.argmin(np.where(good, distance, np.inf)), held.shape)
         return zoomed(wide, 1.0, (float(xs[column]), float(ys[row])))
@@ -520,12 +527,12 @@ def head_top_cut_px(crop: Crop, heads: list[Head]) -> float:
 
 def least_cut(candidates: list[Candidate], cut_px: Callable[[Crop], float]
               ) -> list[Candidate]:
-    """The candidates whose crops cut least off the top of the subject or its heads (cut_px:
-    how much, past what may go), within HEAD_TOP_SLACK_FRACTION."""
+    """The candidates whose crops cut least off the heads' tops or into the subject (cut_px:
+    how much, past what may go), within CUT_SLACK_FRACTION."""
     if not candidates:
         return candidates
     cuts = [max(0.0, cut_px(c.crop)) for c in candidates]
-    slack = HEAD_TOP_SLACK_FRACTION * candidates[0].crop.height_px
+    slack = CUT_SLACK_FRACTION * candidates[0].crop.height_px
     return [c for c, cut in zip(candidates, cuts, strict=True) if cut <= min(cuts) + slack]
 
 
