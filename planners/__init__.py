@@ -32,6 +32,9 @@ class PlanRequest:
     """ISNet's salient-object probability (H, W), or None without the model: worked out on
     the first call (the depth stage's own when it ran), so a planner that does not ask for
     it pays nothing."""
+    known_saliency: Callable[[], np.ndarray | None] = no_saliency
+    """The same map where it is already worked out (by the depth stage, or kept by the depth
+    cache), else None: free to look at, never running ISNet."""
 
 
 class Planner(Protocol):

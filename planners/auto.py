@@ -125,6 +125,10 @@ SUBJECT_PIECE_FRACTION = 0.01
 its area: a stray salient speck does not stretch it (a quantile of its rows would cut a
 bottle's neck)."""
 
+SUBJECT_THIN_PX = 5
+"""A subject's top is that of its parts at least this wide (working px): a lantern's string
+reaching the photo's top is not its top."""
+
 SUBJECT_HEADROOM_FRACTION = 0.1
 """A subject taller than the crop (and no wider) is framed from its top, this share of the
 crop's height below the crop's top edge: centred, a landscape clip of two dogs looking out
@@ -132,8 +136,8 @@ of a window, one above the other, cut the upper dog's eyes off in both end frame
 
 SUBJECT_SOLID_FRACTION = 0.25
 """... if it covers at least this share of its extent's box: salient streaks scattered over
-a wood texture are no subject with a top (two dogs cover 0.43 of theirs, a table with a
-bottle and a drum on a beanbag 0.54)."""
+a wood texture, or a few of a rooster's feathers, are no subject with a top or sides (two
+dogs cover 0.43 of theirs, a table with a bottle and a drum on a beanbag 0.54)."""
 
 MOTION_WEIGHT = 0.02
 """Score of a candidate that does not move sideways at all, fading out at MIN_VISIBLE_SHIFT."""
@@ -197,14 +201,11 @@ def crop_margins(width: float, height: float) -> tuple[float, float]:
 
 
 def framing_mask(request: PlanRequest) -> np.ndarray | None:
-    """What ISNet holds salient, at the depth's size, where the widest crop shows at most
-    FRAMING_FREE_FRACTION of the photo's width or height (elsewhere framing has no freedom,
-    and ISNet is not run for it) and the map is there."""
+    """What ISNet holds salient, at the depth's size, where the map is there: worked out if
+    the widest crop shows at most FRAMING_FREE_FRACTION of the photo's width or height, else
+    only where it already is (request.known_saliency)."""
     height, width = request.depth.shape
-    wide = aspect_crop(request)
-    if min(wide.width_px / width, wide.height_px / height) > FRAMING_FREE_FRACTION:
-        return None
-    saliency = request.saliency()
+    saliency = request.saliency() if framing_free(request) else request.known_saliency()
     if saliency is None:
         return None
     if saliency.shape != (height, width):  # a map of another size: brought to the depth's
@@ -213,10 +214,20 @@ def framing_mask(request: PlanRequest) -> np.ndarray | None:
     return np.nan_to_num(saliency) >= SALIENT_THRESHOLD
 
 
-class Subject:
-    """What ISNet holds salient, for framing a photo the preset's shape cannot show whole."""
+def framing_free(request: PlanRequest) -> bool:
+    """Whether the widest crop shows at most FRAMING_FREE_FRACTION of the photo's width or
+    height: where to place it is a choice."""
+    height, width = request.depth.shape
+    wide = aspect_crop(request)
+    return min(wide.width_px / width, wide.height_px / height) <= FRAMING_FREE_FRACTION
 
-    def __init__(self, salient: np.ndarray) -> None:
+
+class Subject:
+    """What ISNet holds salient, for framing a photo the preset's shape cannot show whole;
+    where it shows most of it (not free), only the subject's top and sides are kept."""
+
+    def __init__(self, salient: np.ndarray, free: bool = True) -> None:
+        self.free = free  # framing_free
         self.shape = salient.shape
         self.area = float(salient.sum())
         self.summed = cv2.integral(salient.astype(np.uint8)).astype(np.float64)
@@ -232,20 +243,23 @@ class Subject:
                 kept = np.arange(1, count)
             pieces = stats[kept]
             self.left = float(pieces[:, cv2.CC_STAT_LEFT].min())
-            self.top = float(pieces[:, cv2.CC_STAT_TOP].min())
             self.right = float((pieces[:, cv2.CC_STAT_LEFT] + pieces[:, cv2.CC_STAT_WIDTH]).max())
             self.bottom = float((pieces[:, cv2.CC_STAT_TOP] + pieces[:, cv2.CC_STAT_HEIGHT]).max())
-            self.top_x = float(np.flatnonzero(np.isin(labels[int(self.top)], kept)).mean())
+            body = np.isin(labels, kept).astype(np.uint8)
+            solid = cv2.morphologyEx(body, cv2.MORPH_OPEN, np.ones((1, SUBJECT_THIN_PX), np.uint8))
+            if solid.any():  # its top is where it is no thin string
+                body = solid
+            top = int(np.flatnonzero(body.any(axis=1))[0])
+            self.top, self.top_x = float(top), float(np.flatnonzero(body[top]).mean())
 
     @classmethod
     def of(cls, request: PlanRequest) -> Subject | None:
-        """The subject, where the widest crop shows at most FRAMING_FREE_FRACTION of the
-        photo's width or height and ISNet's map is there (else it is not asked for) and holds
-        at least SUBJECT_MIN_FRACTION of the photo."""
+        """The subject, where ISNet's map is there (framing_mask) and holds at least
+        SUBJECT_MIN_FRACTION of the photo."""
         salient = framing_mask(request)
         if salient is None:
             return None
-        subject = cls(salient)
+        subject = cls(salient, framing_free(request))
         return subject if subject.area >= SUBJECT_MIN_FRACTION * salient.size else None
 
     def held(self, left: np.ndarray, top: np.ndarray, right: np.ndarray, bottom: np.ndarray
@@ -265,35 +279,41 @@ class Subject:
         return float(self.held(*(np.array(v) for v in (crop.left_px, crop.top_px,
                                                           crop.right_px, crop.bottom_px))))
 
-    def has_top(self) -> bool:
-        """Whether the subject is solid enough to have a top (SUBJECT_SOLID_FRACTION)."""
+    def is_solid(self) -> bool:
+        """Whether the subject is solid enough to have a top and sides
+        (SUBJECT_SOLID_FRACTION)."""
         height, width = self.bottom - self.top, self.right - self.left
         return self.area >= SUBJECT_SOLID_FRACTION * height * width
 
     def shows_own_top(self) -> bool:
-        """Whether the subject has a top (has_top) inside the margin a start crop keeps from
-        the photo's edge: a cat's face filling the photo, or a lantern's string, reach the
-        photo's top; kept, that top put the end crop at the photo's edge (the cat's nose cut,
-        the lantern low in the frame)."""
-        return self.has_top() and self.top > crop_margins(*self.shape[::-1])[1]
+        """Whether the subject is_solid, its top inside the margin a start crop keeps from
+        the photo's edge: a cat's face filling the photo reaches the photo's top; kept, that
+        top put the end crop at the photo's edge (the cat's nose cut)."""
+        return self.is_solid() and self.top > crop_margins(*self.shape[::-1])[1]
 
     def cut_px(self, left: np.ndarray | float, top: np.ndarray | float,
                right: np.ndarray | float) -> np.ndarray:
-        """How far windows (edges in working px) cut into the subject's extent: into its top
+        """How far windows (edges in working px) cut into a solid subject's extent: its top
         where it shows_own_top, into its sides where the extent is no wider than they are (a
-        lantern's side, by 8 px, centred in a square clip)."""
+        lantern's side, by 8 px, centred in a square clip) and, like its top, inside the
+        start crop's margin (a launch tower standing at the photo's edge is no side to keep:
+        kept, it pulled a 16:9 end crop into the corner, the rocket cut in half)."""
         cut = np.zeros(np.broadcast(left, top, right).shape)
         if self.shows_own_top():
             cut = np.maximum(cut, np.asarray(top) - self.top)
-        fits = np.asarray(right) - np.asarray(left) >= self.right - self.left
-        sides = np.maximum(np.asarray(left) - self.left, self.right - np.asarray(right))
+        margin_x = crop_margins(*self.shape[::-1])[0]
+        fits = (np.asarray(right) - np.asarray(left) >= self.right - self.left) & self.is_solid()
+        sides = np.maximum(np.asarray(left) - self.left if self.left > margin_x else 0.0,
+                           self.right - np.asarray(right)
+                           if self.right < self.shape[1] - margin_x else 0.0)
         return np.maximum(cut, np.where(fits, sides, 0.0))
 
     def too_tall_for(self, crop: Crop) -> bool:
         """Whether the subject fits the crop's width but not its height (a person, an animal,
-        a tower in a portrait photo under a landscape preset)."""
-        return (self.bottom - self.top > crop.height_px and self.right - self.left
-                <= crop.width_px and self.has_top())
+        a tower in a portrait photo under a landscape preset), where framing is free: it is
+        framed from its top."""
+        return (self.free and self.bottom - self.top > crop.height_px
+                and self.right - self.left <= crop.width_px and self.is_solid())
 
     def top_head(self) -> Head:
         """The subject's top: what a crop that cannot hold it all keeps."""
@@ -333,7 +353,7 @@ class Subject:
         cut_now = self.cut_px(wide.left_px, wide.top_px, wide.right_px)
         cuts_less = ((cuts < cut_now - SUBJECT_CUT_TOLERANCE_PX)
                      & (held >= SUBJECT_WHOLE_FRACTION * self.area))
-        gains = held.max() >= self.held_by(wide) + SUBJECT_GAIN_FRACTION * self.area
+        gains = self.free and held.max() >= self.held_by(wide) + SUBJECT_GAIN_FRACTION * self.area
         if not too_tall and (held.max() < SUBJECT_WHOLE_FRACTION * self.area
                              or not (gains or cuts_less.any())):
             return wide
@@ -386,7 +406,8 @@ def head_of(request: PlanRequest, found: Detection) -> Head:
     as wide as the piece of the outline there."""
     x0, y0, x1, y1 = found.box
     centre = Head(*box_point(found.box, HEAD_HEIGHT), HEAD_HALF_WIDTH_FRACTION * (x1 - x0), y0)
-    salient = framing_mask(request) if found.class_name in ANIMAL_CLASSES else None
+    salient = (framing_mask(request) if found.class_name in ANIMAL_CLASSES
+               and framing_free(request) else None)
     if salient is None:
         return centre
     left, top = max(0, int(x0)), max(0, int(y0))
@@ -510,7 +531,7 @@ def score_candidates(request: PlanRequest, use_saliency: bool = True, use_motion
         framed = []
         if subject.too_tall_for(wide):  # the end crop keeps the top it was framed from
             framed = [c for c in candidates if keeps(c.crop, subject.top_head())]
-        if not framed:  # no end crop keeps less of it than the unshifted one
+        if subject.free and not framed:  # no end crop keeps less of it than the unshifted one
             least = subject.held_by(tight) - SUBJECT_TIE_FRACTION * subject.area
             framed = [c for c in candidates if subject.held_by(c.crop) >= least]
         candidates = framed or candidates

@@ -43,9 +43,10 @@ def test_crops_lie_inside_and_keep_the_output_aspect(size, preset_name, planner)
     assert ratio == pytest.approx(request.preset.zoom)
 
 
-def subject_request(preset_name: str, subject: np.ndarray, asked: list | None = None
-                    ) -> PlanRequest:
-    """A flat scene of subject's size whose salient map is subject (a probability map)."""
+def subject_request(preset_name: str, subject: np.ndarray, asked: list | None = None,
+                    known: bool = False) -> PlanRequest:
+    """A flat scene of subject's size whose salient map is subject (a probability map),
+    worked out when asked for (asked records it) or, with known, already there."""
     height, width = subject.shape
     request = request_for(width, height, preset_name,
                           disparity=np.full((height, width), 8.0, np.float32))
@@ -55,7 +56,8 @@ def subject_request(preset_name: str, subject: np.ndarray, asked: list | None = 
             asked.append(True)
         return subject
 
-    return PlanRequest(request.image, request.depth, request.preset, saliency)
+    return PlanRequest(request.image, request.depth, request.preset, saliency,
+                       (lambda: subject) if known else (lambda: None))
 
 
 def test_a_vertical_clip_of_a_wide_photo_frames_its_salient_subject():
@@ -117,8 +119,8 @@ def test_a_subject_whose_top_the_centred_crop_cuts_is_framed_with_it():
     plan = get_planner("auto").plan(subject_request("slideshow", bear))
     assert plan.start.top_px <= 77 and plan.start.bottom_px >= 629, plan.start  # to 1 px
     assert plan.end.top_px <= 76 + 0.01 * plan.end.height_px, plan.end
-    # A subject reaching the photo's top (a face filling it, a lantern's string) has no top
-    # to keep: the end crop is not pinned to the photo's edge.
+    # A subject reaching the photo's top (a face filling it) has no top to keep: the end crop
+    # is not pinned to the photo's edge.
     face = np.zeros((853, 1024), np.float32)
     face[0:700, 200:900] = 0.9
     plan = get_planner("auto").plan(subject_request("slideshow", face))
@@ -133,6 +135,46 @@ def test_a_subject_the_centred_crop_cuts_at_its_side_is_framed_whole():
     plan = get_planner("auto").plan(subject_request("square", lantern))
     for crop in (plan.start, plan.end):
         assert crop.left_px <= 174 and crop.right_px >= 403, crop  # to 1 px
+
+
+def test_a_map_already_worked_out_keeps_a_subjects_top_where_the_crop_shows_most_of_it():
+    """Photo 20 at `slideshow`: a 16:9 clip of the 3:2 photo is placed as before, and ISNet is
+    not run for it; but the depth stage worked its map out, and the end crop, free to move
+    down for less disocclusion, cut 31 px off the lantern's top (the cup's rim on photo 16)."""
+    lantern = np.zeros((683, 1024), np.float32)
+    lantern[50:434, 173:404] = 0.9  # the centred crop's top is at 62
+    lantern[0:50, 288:290] = 0.9  # its string, to the photo's top: thin, no top of it
+    asked: list = []
+    plan = get_planner("auto").plan(subject_request("slideshow", lantern, asked, known=True))
+    assert not asked
+    for crop in (plan.start, plan.end):
+        assert crop.top_px <= 50 + 0.01 * crop.height_px, crop
+    # Framing is no freer than before: a subject held whole stays off-centre.
+    small = np.zeros((683, 1024), np.float32)
+    small[200:400, 60:300] = 0.9
+    plan = get_planner("auto").plan(subject_request("slideshow", small, known=True))
+    assert plan.start.center_x_px == pytest.approx(512) and plan.start.center_y_px == (
+        pytest.approx(341.5))
+
+
+def test_a_side_at_the_photos_edge_or_of_scattered_specks_is_no_side_to_keep():
+    """Photo 24 at `slideshow`: ISNet holds a launch tower standing at the photo's left edge
+    and the rocket salient; keeping that side pulled the end crop into the top left corner,
+    the rocket cut in half. A few of a rooster's feathers (photo 11) pulled it aside."""
+    from kbbatch.planners.auto import Subject
+
+    towers = np.zeros((683, 1024), bool)
+    towers[0:683, 0:80] = True  # the tower at the edge
+    towers[120:683, 460:520] = True  # the rocket
+    towers[200:683, 700:768] = True  # another tower
+    subject = Subject(towers, free=False)
+    assert subject.cut_px(114.0, 118.0, 909.0) == 0.0  # the centred end crop
+    feathers = np.zeros((683, 1024), bool)
+    feathers[60:400:20, 620:905] = True
+    assert Subject(feathers, free=False).cut_px(95.0, 50.0, 890.0) == 0.0
+    whole = np.zeros((683, 1024), bool)
+    whole[60:400, 620:905] = True  # a solid subject: its side is cut by 15 px
+    assert Subject(whole, free=False).cut_px(95.0, 50.0, 890.0) == pytest.approx(15.0)
 
 
 def test_an_animal_head_is_the_highest_point_of_its_outline(monkeypatch):
@@ -215,9 +257,10 @@ def test_a_crop_showing_most_of_the_photo_never_asks_for_the_salient_map():
     assert not asked
 
 
-def real_social_plan(monkeypatch, pattern: str, what: str, working_shape: tuple[int, int]):
-    """The depth stage's result and the auto plan at `social` of a shared photo, with the real
-    segmentation models (skips without them or the photo)."""
+def real_social_plan(monkeypatch, pattern: str, what: str, working_shape: tuple[int, int],
+                     preset_name: str = "social"):
+    """The depth stage's result and the auto plan at `social` (or preset_name) of a shared
+    photo, with the real segmentation models (skips without them or the photo)."""
     from kbbatch.images import read_image
     from kbbatch.pipeline import plan_photo, working_depth
 
@@ -230,7 +273,8 @@ def real_social_plan(monkeypatch, pattern: str, what: str, working_shape: tuple[
     photo = read_image(path)
     working, depth_result, depth = working_depth(photo, path, ClipOptions(cache_depth=False))
     assert working.shape[:2] == working_shape
-    return depth_result, plan_photo(working, depth_result, depth, load_preset("social"), "auto")
+    return depth_result, plan_photo(working, depth_result, depth, load_preset(preset_name),
+                                    "auto")
 
 
 def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
@@ -240,6 +284,15 @@ def test_real_lantern_is_framed_whole_in_a_vertical_clip(monkeypatch):
     for crop in (plan.start, plan.end):
         inside = salient[:, int(crop.left_px):int(crop.right_px) + 1].sum() / salient.sum()
         assert inside > 0.95, f"{inside:.2f} of the lantern in the {crop}"
+
+
+def test_real_lantern_top_is_in_both_crops_of_a_landscape_clip(monkeypatch):
+    """Photo 20 at `slideshow`: the lantern's top is at 107 (working px), its string above it
+    reaches the photo's top; the end crop's top was at 138."""
+    _, plan = real_social_plan(monkeypatch, "20_*lantern*", "photo 20 (the lantern)",
+                               (683, 1024), "slideshow")
+    for crop in (plan.start, plan.end):
+        assert crop.top_px <= 107, crop
 
 
 def test_real_walrus_face_is_in_both_crops_of_a_vertical_clip(monkeypatch):
