@@ -108,10 +108,34 @@ def test_unknown_pixels_beside_an_object_take_the_depth_behind_it_not_the_farthe
     depth[15:35, 20:30] = 2.0  # an object in front of the wall
     depth[15:35, 30:34] = 0.0  # its shadow on the wall: unknown
     depth[0, 0] = 0.0  # unknown, with only far pixels around
-    disparity = disparity_from_map(depth, "depth", tmp_path / "a.depth.png", 40, 60)
+    photo = np.full((40, 60, 3), 120, np.uint8)  # the wall and the shadow on it, grey
+    photo[15:35, 20:30] = (200, 30, 40)  # the object, red
+    disparity = disparity_from_map(depth, "depth", tmp_path / "a.depth.png", photo)
     assert disparity[20:30, 30:34] == pytest.approx(1 / 5.0)  # the wall behind, not 1/40
     assert disparity[0, 0] == pytest.approx(1 / 40.0)
     assert disparity[20, 25] == pytest.approx(1 / 2.0) and disparity[20, 45] == pytest.approx(0.2)
+
+
+def test_unknown_pixels_of_an_objects_colour_take_its_depth(tmp_path):
+    """A depth sensor leaves its frame's edge unknown, across objects too (TUM RGB-D: a chair
+    at the left edge). Filled from the far side, the chair's edge went to the floor's depth:
+    a sliver torn off the chair by a dotted crack in the frame."""
+    from kbbatch.depth.file import disparity_from_map
+
+    depth = np.full((240, 320), 4.0, np.float32)  # the floor
+    depth[80:200, 0:120] = 1.5  # a chair reaching the left edge
+    photo = np.full((240, 320, 3), 150, np.uint8)
+    photo[80:200, 0:120] = (110, 30, 60)  # maroon
+    photo[100:160, 200:230] = 10  # a black leg of something farther...
+    photo[160:200, 140:230] = 10  # ... beside a black part of the chair
+    depth[160:200, 140:230] = 1.5
+    depth[:, 0:4] = 0.0  # the sensor's frame edge
+    depth[100:160, 200:230] = 0.0  # the black leg, missed
+    disparity = disparity_from_map(depth, "depth", tmp_path / "a.depth.png", photo)
+    assert disparity[84:196, 0:4] == pytest.approx(1 / 1.5)  # the chair's edge, on the chair
+    assert disparity[0:76, 0:4] == pytest.approx(1 / 4.0)  # the floor's, on the floor
+    assert disparity[204:, 0:4] == pytest.approx(1 / 4.0)
+    assert disparity[100:150, 200:230] == pytest.approx(1 / 4.0)  # not torn to the chair's
 
 
 def test_a_map_with_an_upper_case_suffix_is_found_and_a_photo_named_depth_is_a_photo(tmp_path):

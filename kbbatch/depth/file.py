@@ -240,9 +240,10 @@ def _exr_source(path: Path, stack: contextlib.ExitStack) -> str | BinaryIO:
     return name
 
 
-def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, width: int
+def disparity_from_map(data: np.ndarray, kind: str, path: Path, image: np.ndarray
                        ) -> np.ndarray:
-    """Validate a user map and turn it into disparity at the given size."""
+    """Validate a user map and turn it into disparity at the photo's (image's) size."""
+    height, width = image.shape[:2]
     if np.isnan(data).any() or (kind == "disparity" and np.isinf(data).any()):
         raise DepthError(f"{path}: contains NaN or infinite values")
     valid = (data > 0) & np.isfinite(data)  # infinite depth: as far as the farthest known
@@ -262,7 +263,8 @@ def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, wid
     # Infinite depth (a renderer's empty sky) is the farthest of all; an unknown pixel (a
     # sensor's shadow, a stereo occlusion) lies beside an object, on the far side.
     disparity[np.isinf(data)] = farthest
-    disparity = far_side_fill(disparity, disparity > 0, farthest)
+    colour = cv2.resize(image, (data.shape[1], data.shape[0]), interpolation=cv2.INTER_AREA)
+    disparity = far_side_fill(disparity, disparity > 0, farthest, colour)
     if data.shape[0] <= height and data.shape[1] <= width:
         # Kept at its own size, as a network's map is: the depth stage's refinement brings it
         # up with its edges on the photo's colour edges. Enlarged here, every edge would be a
@@ -271,15 +273,39 @@ def disparity_from_map(data: np.ndarray, kind: str, path: Path, height: int, wid
     return cv2.resize(disparity, (width, height), interpolation=cv2.INTER_AREA)
 
 
-def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float) -> np.ndarray:
+NEAR_SIDE_COLOUR_RATIO = 2.0
+"""An unknown pixel takes the near side's depth where its colour is this many times nearer
+the near side's than the far side's: the colours of a shadow and of the surface it falls on
+are alike; where both sides are alike, the far side keeps it."""
+
+FAR_SIDE_COLOUR_DIFFERENCE = 30.0
+"""... and differs from the far side's by more than this (RGB distance, of 0-255 levels): a
+floor that runs on across a sensor's unknown frame edge is near and far at once."""
+
+NEAR_SIDE_REACH_FRACTION = 0.015
+"""... and lies within this share of the map's long side of the near side: a black desk leg
+the sensor missed took, in parts, the depth of a black chair base beside it, torn apart."""
+
+NEAR_SIDE_MEDIAN_PX = 5
+"""The pixels taking the near side's depth are cleaned by a median of this size (map px)."""
+
+GUIDE_BLUR_PX = 1.0
+"""The colours compared are blurred by this (sigma, map px) so that noise does not decide."""
+
+
+def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float,
+                  colour: np.ndarray) -> np.ndarray:
     """Each unknown region filled from the far side of its border: every unknown pixel takes
     the value of the nearest border pixel at most halfway from the border's farthest
-    disparity to its nearest.
+    disparity to its nearest; unless its colour (the photo at the map's size) is clearly
+    nearer that of the nearest pixel on the near side (NEAR_SIDE_COLOUR_RATIO).
 
     A depth sensor's or a stereo pair's unknown pixels are mostly the shadow an object casts
     on what lies behind it. Set to the farthest depth of the whole map, each became a pit
     beside the object's outline, which the move opened into torn shards of fill; filled from
-    the object's side, it would widen the object by its shadow."""
+    the object's side, it would widen the object by its shadow. But a sensor also leaves its
+    frame's edge unknown, across objects too: filled from the far side, a chair's edge there
+    (TUM RGB-D) went to the floor's depth, a sliver torn off the chair by a dotted crack."""
     unknown = ~known
     if not unknown.any():
         return disparity.astype(np.float32)
@@ -297,7 +323,29 @@ def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float) -> 
     if not far_side.any():  # nothing known around anything unknown
         filled[unknown] = fallback
         return filled
-    filled[unknown] = filled[nearest_pixels(far_side, unknown)]
+    far = nearest_pixels(far_side, unknown)
+    filled[unknown] = filled[far]
+    near_side = border & ~far_side
+    if near_side.any():
+        near = nearest_pixels(near_side, unknown)
+        guide = cv2.GaussianBlur(colour.astype(np.float32), (0, 0), GUIDE_BLUR_PX)
+        own = guide[unknown]
+        far_difference = np.linalg.norm(own - guide[far], axis=1)
+        near_difference = np.linalg.norm(own - guide[near], axis=1)
+        of_near_side = np.zeros_like(known, dtype=np.uint8)
+        reach = NEAR_SIDE_REACH_FRACTION * max(known.shape)
+        within = cv2.distanceTransform((~near_side).astype(np.uint8), cv2.DIST_L2, 5) <= reach
+        of_near_side[unknown] = ((near_difference * NEAR_SIDE_COLOUR_RATIO < far_difference)
+                                 & (far_difference > FAR_SIDE_COLOUR_DIFFERENCE)
+                                 & within[unknown])
+        # a region, not scattered pixels (each a spike in the depth, cracks in the frame),
+        # and one joined to the near side (an island of it would float, a fragment)
+        of_near_side = cv2.medianBlur(of_near_side * 255, NEAR_SIDE_MEDIAN_PX)
+        count, pieces = cv2.connectedComponents(of_near_side, connectivity=8)
+        touching = np.unique(pieces[cv2.dilate(near_side.astype(np.uint8), np.ones((3, 3)))
+                                    .astype(bool)])
+        of_near_side = np.isin(pieces, touching[touching > 0])
+        filled[unknown] = np.where(of_near_side[unknown], disparity[near], filled[unknown])
     return filled
 
 
@@ -312,7 +360,6 @@ class FileDepth:
         if not self.path.is_file():
             raise DepthError(f"{self.path}: depth file not found")
         kind = _map_kind(self.path.name)
-        height, width = image.shape[:2]
         data = load_map(self.path)
-        return DepthResult(disparity_from_map(data, kind, self.path, height, width), self.name,
+        return DepthResult(disparity_from_map(data, kind, self.path, image), self.name,
                            str(self.path))
