@@ -4,7 +4,8 @@
 
 Per photo: planning seconds of `auto`, and the disoccluded fraction of the (unfilled) end view
 for auto, center, and the reference's objective alone (minimum disocclusion, no saliency or
-motion terms). Depth is the default backend's (auto), computed once per photo.
+motion terms). Depth is the default backend's (auto), computed once per photo; the planners see
+what they see in a render (ISNet's map included).
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ import numpy as np
 from kbbatch import paper
 from kbbatch.camera import depth_from_disparity, working_size
 from kbbatch.images import list_images, read_image
-from kbbatch.pipeline import ClipOptions, cached_disparity, resize_to
-from kbbatch.planners import PlanRequest, get_planner
+from kbbatch.pipeline import ClipOptions, cached_disparity, plan_request, resize_to
+from kbbatch.planners import get_planner
 from kbbatch.planners.auto import AutoPlanner, plan_disocclusion
 from kbbatch.presets import load_preset
 
@@ -43,9 +44,9 @@ def main() -> int:
         image = read_image(photo)
         width, height = working_size(image.shape[1], image.shape[0])
         working = resize_to(image, width, height)
-        disparity = cached_disparity(working, photo, ClipOptions()).disparity
-        depth = depth_from_disparity(disparity, paper.focal_px(max(width, height)))
-        request = PlanRequest(working, depth, preset)
+        depth_result = cached_disparity(working, photo, ClipOptions())
+        depth = depth_from_disparity(depth_result.disparity, paper.focal_px(max(width, height)))
+        request = plan_request(working, depth_result, depth, preset)  # as a render plans
         values, seconds = [], 0.0
         for name, planner in planners.items():
             started = time.perf_counter()

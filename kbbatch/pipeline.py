@@ -293,16 +293,21 @@ def prepare_scene(
 
 def plan_photo(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray,
                preset: Preset, planner: str) -> Plan:
-    """The named planner's plan; ISNet's map, if the planner asks for it, is the one the depth
-    stage worked out or the depth cache kept (else worked out now, and kept; known_saliency
-    gives it only where it is there already). With the ramp prior, chosen to run no network,
-    there is none."""
+    """The named planner's plan."""
+    return get_planner(planner).plan(plan_request(working, depth_result, depth, preset))
+
+
+def plan_request(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray,
+                 preset: Preset) -> PlanRequest:
+    """What a planner sees; ISNet's map, if it asks for it, is the one the depth stage worked
+    out or the depth cache kept (else worked out now, and kept; known_saliency gives it only
+    where it is there already). With the ramp prior, chosen to run no network, there is
+    none."""
     if depth_result.backend == "ramp":
-        return get_planner(planner).plan(PlanRequest(working, depth, preset))
+        return PlanRequest(working, depth, preset)
     context = depth_result.segmentation or SceneContext(working)
-    return get_planner(planner).plan(PlanRequest(working, depth, preset,
-                                                 lambda: context.saliency,
-                                                 context.known_saliency))
+    return PlanRequest(working, depth, preset, lambda: context.saliency,
+                       context.known_saliency)
 
 
 def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions,
