@@ -300,14 +300,15 @@ def plan_photo(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray
 def plan_request(working: np.ndarray, depth_result: DepthResult, depth: np.ndarray,
                  preset: Preset) -> PlanRequest:
     """What a planner sees; ISNet's map, if it asks for it, is the one the depth stage worked
-    out or the depth cache kept (else worked out now, and kept; known_saliency gives it only
-    where it is there already). With the ramp prior, chosen to run no network, there is
-    none."""
+    out or the depth cache kept (else worked out now, and kept); known_saliency gives only
+    the depth stage's own, alike on a depth-cache hit and a miss. With the ramp prior, chosen
+    to run no network, there is none."""
     if depth_result.backend == "ramp":
         return PlanRequest(working, depth, preset)
     context = depth_result.segmentation or SceneContext(working)
-    return PlanRequest(working, depth, preset, lambda: context.saliency,
-                       context.known_saliency)
+    # what the depth stage worked out itself (before the planner asks for anything)
+    stage_map = None if context.saliency_by_planner else context.known_saliency()
+    return PlanRequest(working, depth, preset, lambda: context.saliency, lambda: stage_map)
 
 
 def working_depth(photo: np.ndarray, photo_path: Path | None, options: ClipOptions,

@@ -33,8 +33,8 @@ class PlanRequest:
     the first call (the depth stage's own when it ran), so a planner that does not ask for
     it pays nothing."""
     known_saliency: Callable[[], np.ndarray | None] = no_saliency
-    """The same map where it is already worked out (by the depth stage, or kept by the depth
-    cache), else None: free to look at, never running ISNet."""
+    """The same map where the depth stage worked it out (for its cards), else None: free to
+    look at, never running ISNet."""
 
 
 class Planner(Protocol):

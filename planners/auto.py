@@ -357,7 +357,8 @@ class Subject:
         if not too_tall and (held.max() < SUBJECT_WHOLE_FRACTION * self.area
                              or not (gains or cuts_less.any())):
             return wide
-        good = held >= held.max() - SUBJECT_TIE_FRACTION * self.area
+        # where framing is not free, moved only to cut less
+        good = (held >= held.max() - SUBJECT_TIE_FRACTION * self.area) if self.free else cuts_less
         good &= cuts <= cuts[good].min() + SUBJECT_CUT_TOLERANCE_PX  # of those, the least cut
         distance = np.hypot(grid_x - self.centre[0], grid_y - self.centre[1])
         row, column = np.unravel_index(np.argmin(np.where(good, distance, np.inf)), held.shape)

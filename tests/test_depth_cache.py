@@ -194,6 +194,31 @@ def test_an_entry_keeps_isnets_map_for_the_planner():
     assert depth_cache.load(key(1), other_size).segmentation is None
 
 
+def test_only_the_depth_stages_own_map_frames_where_isnet_is_not_run_for_framing():
+    """A map the planner added to an entry (a vertical preset framed the photo first) made a
+    later `slideshow` plan differ from one without that history: there only the depth stage's
+    own map is used."""
+    from kbbatch.depth import SceneContext
+    from kbbatch.pipeline import plan_request
+    from kbbatch.presets import load_preset
+
+    image = np.zeros((SIDE_PX, SIDE_PX, 3), np.uint8)
+    saliency = np.full((SIDE_PX, SIDE_PX), 0.9, np.float32)
+    depth = np.full((SIDE_PX, SIDE_PX), 2.0, np.float32)
+    preset = load_preset("slideshow")
+    depth_cache.store(key(1), DepthResult(result(1.0).disparity, "popup", "test",
+                                          SceneContext.known(image, saliency)))
+    depth_cache.store(key(2), DepthResult(result(1.0).disparity, "popup", "test"))
+    depth_cache.add_saliency(key(2), saliency)  # worked out later, by the planner
+    own = plan_request(image, depth_cache.load(key(1), image), depth, preset)
+    added = plan_request(image, depth_cache.load(key(2), image), depth, preset)
+    assert own.known_saliency() is not None and added.known_saliency() is None
+    assert added.saliency() is not None  # where framing is free, the planner reads it
+    fresh = plan_request(image, DepthResult(result(1.0).disparity, "popup", "test",
+                                            SceneContext(image)), depth, preset)
+    assert fresh.known_saliency() is None
+
+
 def test_the_users_own_cache_is_private(tmp_path, monkeypatch):
     """Depth maps, plans and preview clips of photos in a private folder sat in a 755 cache
     under a 755 home: every user of the machine could read them."""

@@ -149,12 +149,30 @@ def test_a_map_already_worked_out_keeps_a_subjects_top_where_the_crop_shows_most
     assert not asked
     for crop in (plan.start, plan.end):
         assert crop.top_px <= 50 + 0.01 * crop.height_px, crop
-    # Framing is no freer than before: a subject held whole stays off-centre.
-    small = np.zeros((683, 1024), np.float32)
-    small[200:400, 60:300] = 0.9
-    plan = get_planner("auto").plan(subject_request("slideshow", small, known=True))
+    # Framing is no freer than before: a crop holding 40 % more of a subject lower down,
+    # whose top and sides it keeps, stays centred.
+    low = np.zeros((683, 1024), np.float32)
+    low[560:660, 300:700] = 0.9
+    plan = get_planner("auto").plan(subject_request("slideshow", low, known=True))
     assert plan.start.center_x_px == pytest.approx(512) and plan.start.center_y_px == (
         pytest.approx(341.5))
+
+
+def test_where_framing_is_not_free_a_crop_moves_only_to_cut_less():
+    """A bottle on a stand, its neck's top 22 px above the centred 16:9 crop: the crop moved to
+    hold 1 % more of it, and cut 34 px."""
+    from kbbatch.camera import fit_crop
+    from kbbatch.planners.auto import Subject
+
+    bottle = np.zeros((683, 1024), bool)
+    bottle[40:140, 497:527] = True  # the neck
+    bottle[140:560, 400:624] = True
+    bottle[560:683, 480:544] = True  # the stand, to the photo's bottom
+    subject = Subject(bottle, free=False)
+    wide = fit_crop(1024, 683, 16 / 9, paper.START_CROP_FRACTION)
+    assert subject.cut_px(wide.left_px, wide.top_px, wide.right_px) == pytest.approx(22.14)
+    framed = subject.framed_by(wide)
+    assert subject.cut_px(framed.left_px, framed.top_px, framed.right_px) == 0.0, framed
 
 
 def test_a_side_at_the_photos_edge_or_of_scattered_specks_is_no_side_to_keep():
@@ -164,9 +182,7 @@ def test_a_side_at_the_photos_edge_or_of_scattered_specks_is_no_side_to_keep():
     from kbbatch.planners.auto import Subject
 
     towers = np.zeros((683, 1024), bool)
-    towers[0:683, 0:80] = True  # the tower at the edge
-    towers[120:683, 460:520] = True  # the rocket
-    towers[200:683, 700:768] = True  # another tower
+    towers[150:683, 0:768] = True  # a solid subject, from the photo's left edge
     subject = Subject(towers, free=False)
     assert subject.cut_px(114.0, 118.0, 909.0) == 0.0  # the centred end crop
     feathers = np.zeros((683, 1024), bool)

@@ -55,12 +55,16 @@ class SceneContext:
                  on_saliency: Callable[[np.ndarray], None] | None = None) -> None:
         self.image = image
         self.on_saliency = on_saliency  # told the map once it is worked out (the depth cache)
+        self.saliency_by_planner = False  # kept by the cache for the planner, not the depth stage
 
     @classmethod
-    def known(cls, image: np.ndarray, saliency: np.ndarray) -> SceneContext:
-        """A context whose salient map is already known (read from the depth cache)."""
+    def known(cls, image: np.ndarray, saliency: np.ndarray, by_planner: bool = False
+              ) -> SceneContext:
+        """A context whose salient map is already known (read from the depth cache; by_planner:
+        worked out for the planner after the depth stage, which ran no ISNet)."""
         context = cls(image)
         context.__dict__["saliency"] = saliency  # where functools.cached_property keeps it
+        context.saliency_by_planner = by_planner
         return context
 
     def known_saliency(self) -> np.ndarray | None:

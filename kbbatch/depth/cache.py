@@ -68,6 +68,12 @@ square preset frames. Its threshold, one half, lies halfway between two levels: 
 salient or not alike in the map and its levels, so a hit plans as a miss does."""
 
 
+PLANNER_SALIENCY = "saliency_by_planner"
+"""Marks a map kept for the planner after the entry was written, not the depth stage's own:
+where ISNet is not run for framing, the planner uses only the depth stage's, so that a photo
+planned at a vertical preset first plans at `slideshow` as if it had not been."""
+
+
 def _saliency_levels(saliency: np.ndarray) -> np.ndarray:
     return np.round(np.clip(np.nan_to_num(saliency), 0.0, 1.0) * SALIENCY_LEVELS).astype(
         np.uint16)
@@ -87,7 +93,8 @@ def load(key: str, image: np.ndarray | None = None) -> DepthResult | None:
             if image is not None and "saliency" in data.files:
                 levels = data["saliency"]
                 if levels.dtype == np.uint16 and levels.shape == image.shape[:2]:
-                    context = SceneContext.known(image, _saliency_from_levels(levels))
+                    context = SceneContext.known(image, _saliency_from_levels(levels),
+                                                 by_planner=PLANNER_SALIENCY in data.files)
             disparity = data["disparity"]
             if not _is_disparity(disparity):  # a valid file of bad values (edited by hand)
                 return None
@@ -129,6 +136,7 @@ def add_saliency(key: str, saliency: np.ndarray) -> None:
     except (OSError, ValueError, EOFError, zipfile.BadZipFile):
         return  # evicted or damaged meanwhile: written whole by the next run
     arrays["saliency"] = _saliency_levels(saliency)
+    arrays[PLANNER_SALIENCY] = np.array(True)
     if _write(path, arrays):
         _bound(path)  # the entry grew
 

@@ -283,11 +283,13 @@ FAR_SIDE_COLOUR_DIFFERENCE = 30.0
 floor that runs on across a sensor's unknown frame edge is near and far at once."""
 
 NEAR_SIDE_REACH_FRACTION = 0.015
-"""... and lies within this share of the map's long side of the near side: a black desk leg
-the sensor missed took, in parts, the depth of a black chair base beside it, torn apart."""
+"""... and lies within this share of the map's long side (or NEAR_SIDE_MEDIAN_PX) of the near
+side: a black desk leg the sensor missed took, in parts, the depth of a black chair base
+beside it, torn apart."""
 
 NEAR_SIDE_MEDIAN_PX = 5
-"""The pixels taking the near side's depth are cleaned by a median of this size (map px)."""
+"""The pixels taking the near side's depth are cleaned by a median of this size (map px):
+strips under half of it wide stay with the far side."""
 
 GUIDE_BLUR_PX = 1.0
 """The colours compared are blurred by this (sigma, map px) so that noise does not decide."""
@@ -333,7 +335,7 @@ def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float,
         far_difference = np.linalg.norm(own - guide[far], axis=1)
         near_difference = np.linalg.norm(own - guide[near], axis=1)
         of_near_side = np.zeros_like(known, dtype=np.uint8)
-        reach = NEAR_SIDE_REACH_FRACTION * max(known.shape)
+        reach = max(NEAR_SIDE_REACH_FRACTION * max(known.shape), NEAR_SIDE_MEDIAN_PX)
         within = cv2.distanceTransform((~near_side).astype(np.uint8), cv2.DIST_L2, 5) <= reach
         of_near_side[unknown] = ((near_difference * NEAR_SIDE_COLOUR_RATIO < far_difference)
                                  & (far_difference > FAR_SIDE_COLOUR_DIFFERENCE)
