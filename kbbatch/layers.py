@@ -239,11 +239,11 @@ def _gaussian_mean(image: np.ndarray, where: np.ndarray, sigma_px: float) -> np.
 def nearest_pixels(mask: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of the nearest pixel of mask (which must have one) to each pixel of
     where (in np.nonzero order)."""
-    rows, cols, _ = _nearest_with_distance(mask, where)
+    rows, cols, _ = nearest_with_distance(mask, where)
     return rows, cols
 
 
-def _nearest_with_distance(mask: np.ndarray, where: np.ndarray
+def nearest_with_distance(mask: np.ndarray, where: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """nearest_pixels, and the distance to mask of every pixel (an image)."""
     distance, labels = cv2.distanceTransformWithLabels(
@@ -280,7 +280,7 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     The mirror may land on any pixel outside where whose depth (per image pixel) is at least
     the pixel's far_depth (per pixel of where), not only on clean ones: those may be a thin
     strip (between the band and the reach of the depth edge), and mirrors falling off it took
-    one pixel's colour across the band as a smooth streak. nearest: _nearest_with_distance
+    one pixel's colour across the band as a smooth streak. nearest: nearest_with_distance
     (clean, where), when the caller has it already. surface: (level image, each pixel of
     where's level, tolerance per pixel of where): the mirror lands only where the level is
     the pixel's own within the tolerance, on the same surface (beyond a lit curtain, a dark
@@ -288,7 +288,7 @@ def mirrored_texture(colour: np.ndarray, clean: np.ndarray, where: np.ndarray,
     ys, xs = np.nonzero(where)
     if not clean.any() or len(ys) == 0:
         return colour[ys, xs]
-    near_y, near_x, distance = nearest or _nearest_with_distance(clean, where)
+    near_y, near_x, distance = nearest or nearest_with_distance(clean, where)
     fallback = colour[near_y, near_x].astype(np.float32)
     smooth = cv2.GaussianBlur(distance, (0, 0), MIRROR_NORMAL_SMOOTH_PX)
     slope_x = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)[ys, xs] / _SOBEL_GAIN
@@ -525,7 +525,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0,
     clean_back = cv2.resize(back_source, size, interpolation=cv2.INTER_NEAREST) > 0.5
     farthest_nearby = cv2.resize(farthest, size, interpolation=cv2.INTER_NEAREST)
     # each band pixel's nearest clean background pixel, for the mirror and the depth behind
-    nearest_clean = _nearest_with_distance(clean_back, band) if clean_back.any() else None
+    nearest_clean = nearest_with_distance(clean_back, band) if clean_back.any() else None
     # The background's shading is continued flat from where it meets the band (its local
     # level at each pixel's nearest clean pixel), its texture by the mirror: mirrored whole, a
     # wall darkening towards a shoulder lightened again behind it, a crease along the old
@@ -545,7 +545,7 @@ def split_layers(photo: np.ndarray, depth: np.ndarray, enlargement: float = 1.0,
         # carried to each band pixel from its nearest clean pixel, then smoothed along the
         # band: nearest clean pixels jump along a border's stairs, and carried alone the
         # level made blocks
-        rows, cols, _ = _nearest_with_distance(small_clean, small_band)
+        rows, cols, _ = nearest_with_distance(small_clean, small_band)
         carried = np.zeros_like(small_level)
         carried[small_band] = small_level[rows, cols]
         carried = _gaussian_mean(carried, small_band, LEVEL_SIGMA_PX)

@@ -28,7 +28,7 @@ from kbbatch.images import (
     own_png_text,
     read_image_bytes,
 )
-from kbbatch.layers import nearest_pixels
+from kbbatch.layers import nearest_pixels, nearest_with_distance
 
 log = logging.getLogger(__name__)
 
@@ -329,21 +329,21 @@ def far_side_fill(disparity: np.ndarray, known: np.ndarray, fallback: float,
     filled[unknown] = filled[far]
     near_side = border & ~far_side
     if near_side.any():
-        near = nearest_pixels(near_side, unknown)
+        near_rows, near_cols, distance = nearest_with_distance(near_side, unknown)
+        near = (near_rows, near_cols)
         guide = cv2.GaussianBlur(colour.astype(np.float32), (0, 0), GUIDE_BLUR_PX)
         own = guide[unknown]
         far_difference = np.linalg.norm(own - guide[far], axis=1)
         near_difference = np.linalg.norm(own - guide[near], axis=1)
         of_near_side = np.zeros_like(known, dtype=np.uint8)
         reach = max(NEAR_SIDE_REACH_FRACTION * max(known.shape), NEAR_SIDE_MEDIAN_PX)
-        within = cv2.distanceTransform((~near_side).astype(np.uint8), cv2.DIST_L2, 5) <= reach
         of_near_side[unknown] = ((near_difference * NEAR_SIDE_COLOUR_RATIO < far_difference)
                                  & (far_difference > FAR_SIDE_COLOUR_DIFFERENCE)
-                                 & within[unknown])
+                                 & (distance[unknown] <= reach))
         # a region, not scattered pixels (each a spike in the depth, cracks in the frame),
         # and one joined to the near side (an island of it would float, a fragment)
         of_near_side = cv2.medianBlur(of_near_side * 255, NEAR_SIDE_MEDIAN_PX)
-        count, pieces = cv2.connectedComponents(of_near_side, connectivity=8)
+        _, pieces = cv2.connectedComponents(of_near_side, connectivity=8)
         touching = np.unique(pieces[cv2.dilate(near_side.astype(np.uint8), np.ones((3, 3)))
                                     .astype(bool)])
         of_near_side = np.isin(pieces, touching[touching > 0])
