@@ -18,6 +18,7 @@ import secrets
 import shutil
 import stat
 import warnings
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -452,14 +453,11 @@ def _to_8bit(values: np.ndarray, is_float: bool, is_16bit: bool) -> np.ndarray:
 def _read_with_opencv(path: Path, data: bytes) -> np.ndarray | None:
     """A TIFF Pillow cannot open (32-bit float RGB, as HDR merges save) read by OpenCV, or
     None. Its orientation tag is not applied."""
-    quiet = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # libtiff's own lines
     try:
-        picture = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        with opencv_silenced():  # libtiff's own lines
+            picture = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error:
         return None
-    finally:
-        cv2.utils.logging.setLogLevel(quiet)
     if picture is None or picture.ndim not in (2, 3) or picture.size == 0:
         return None
     if picture.shape[0] * picture.shape[1] > MAX_SOURCE_PIXELS:
@@ -670,4 +668,17 @@ def read_image_bytes(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarra
     data = np.fromfile(path, dtype=np.uint8)
     if data.size == 0:
         return None
-    return cv2.imdecode(data, flags)
+    with opencv_silenced():  # a damaged PNG's "[ERROR:0@3.9] global grfmt_png.cpp" lines
+        return cv2.imdecode(data, flags)
+
+
+@contextmanager
+def opencv_silenced() -> Iterator[None]:
+    """OpenCV's own log lines kept off the terminal while it decodes: what is wrong with a
+    file is said once, in this tool's words, naming the file."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)

@@ -86,6 +86,12 @@ class ManifestEntry:
                                         "need \"units\": \"px\")")
                 scale_x, scale_y = source_width_px, source_height_px
             else:
+                given = [crop.get(name, 0.0) for name in ("center_x", "center_y", "width",
+                                                           "height")]
+                if all(0 <= value <= 1 for value in given):  # no crop of 1 px or less renders
+                    raise ManifestError(f"{self.where(field)}: a crop {crop['width']:g} px "
+                                        "wide, its centre within 1 px of the photo's corner: "
+                                        "fractions of the photo need \"units\": \"fraction\"")
                 scale_x, scale_y = self.resized(source_width_px, source_height_px)
             width = crop["width"] * scale_x
             height = crop["height"] * scale_y if "height" in crop else width / aspect
@@ -182,7 +188,12 @@ class Manifest:
 
     def depth_map_of(self, path: Path) -> str | None:
         """The image whose entry names this file as its depth map, if any: such a map in the
-        photo folder is no photo (it was rendered as one)."""
+        photo folder is no photo (it was rendered as one); unless it has an entry of its own
+        (a photo named as another's map, or as its own, was dropped, and its entry then said
+        there was no photo of that name)."""
+        if path.name in self.entries or _normal(path.name) in {_normal(name) for name in
+                                                               self.entries}:
+            return None  # a photo with an entry of its own: its map is refused when read
         resolved = path.resolve()
         return next((name for name, entry in self.entries.items()
                      if entry.depth_file == resolved), None)

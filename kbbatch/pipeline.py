@@ -259,10 +259,6 @@ def prepare_scene(
     clock = time.perf_counter()
     if plan is None:
         plan = plan_photo(working, depth_result, depth, preset, options.planner)
-    if _is_still(plan):
-        log.warning("%s: the start and end crops are the same, so the clip is a still picture "
-                    "(give the preset a zoom above 1, or the manifest two different crops)",
-                    photo_path or "photo")
     if not plan.parallax:
         depth = np.full_like(depth, float(depth.min()))
     scene = SceneGeometry(width, height, nearest_depth(depth))
@@ -270,6 +266,10 @@ def prepare_scene(
     # px went through the risk's renders first: warnings of division by zero, and nonsense)
     scale = cloud_scale(preset, plan, scene, max(photo.shape[:2]))
     check_cloud_size(scale, plan, scene, preset, photo.shape[1], photo_path)
+    if _is_still(plan):  # said of a clip that is made: crops too tight to render fail first
+        log.warning("%s: the start and end crops are the same, so the clip is a still picture "
+                    "(give the preset a zoom above 1, or the manifest two different crops)",
+                    photo_path or "photo")
     risk = assess_risk(working, depth, plan, scene)
     relief = 1.0
     if risk.relief < 1.0 and risk.reasons:  # do no harm: less parallax, not a broken clip
@@ -722,6 +722,9 @@ def make_clip(
     try:
         preset, options = apply_entry(entry, preset, options)
         result.preset = preset.name
+        if entry is not None and entry.depth_file == source.resolve():
+            raise ManifestError(f"{entry.where('depth')}: names the photo itself; its depth "
+                                "map is a file of its own (<stem>.depth.png, or .npy)")
         clock = time.perf_counter()
         photo, result.content = read_photo(source)
         timings["read"] = time.perf_counter() - clock

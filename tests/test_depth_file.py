@@ -1,4 +1,5 @@
 import os
+import subprocess
 import sys
 
 import cv2
@@ -181,6 +182,42 @@ def test_a_colour_mapped_picture_is_refused_as_a_depth_map_and_grey_as_colour_is
     np.save(tmp_path / "d.depth.npy", records)  # named the photo, as a TypeError
     with pytest.raises(DepthError, match=r"d.depth.npy: holds .* not numbers"):
         estimate_disparity(textured_image(40, 60), tmp_path / "d.jpg")
+
+
+def test_a_float64_map_beyond_float32s_range_is_read_and_a_complex_one_refused(tmp_path):
+    """Cast to float32, depths of 1e-60 all became 0 ("fewer than half of its pixels hold a
+    positive value") and 1e300 infinite; complex values lost their imaginary parts with a
+    warning and were used."""
+    depth = np.ones((40, 60))
+    depth[10:30, 20:40] = 0.25  # a near square
+    for scale in (1e-60, 1e300):
+        np.save(tmp_path / f"{scale:g}.depth.npy", depth * scale)
+        result = estimate_disparity(textured_image(40, 60), tmp_path / f"{scale:g}.jpg")
+        assert result.disparity[20, 30] == pytest.approx(4 * result.disparity[2, 2], rel=1e-3)
+    np.save(tmp_path / "c.depth.npy", depth.astype(complex))
+    with pytest.raises(DepthError, match=r"c.depth.npy: holds complex numbers"):
+        estimate_disparity(textured_image(40, 60), tmp_path / "c.jpg")
+
+
+def test_a_damaged_png_map_is_said_in_one_line_without_opencvs_own(tmp_path):
+    """OpenCV printed its own `[ERROR:0@3.9] global grfmt_png.cpp:296 readHeader ...` lines
+    above the tool's message; they are kept off the terminal (a child process: OpenCV
+    writes them to its own standard error, which capsys does not see)."""
+    (tmp_path / "a.depth.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    script = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "import numpy as np\n"
+        "from kbbatch.depth import DepthError, estimate_disparity\n"
+        "try:\n"
+        "    estimate_disparity(np.zeros((40, 60, 3), np.uint8), Path(sys.argv[1]) / 'a.jpg')\n"
+        "except DepthError as error:\n"
+        "    print(error)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True,
+                         text=True, timeout=120)
+    assert run.stdout.strip() == f"{tmp_path / 'a.depth.png'}: not a readable image"
+    assert "grfmt" not in run.stderr and "ERROR" not in run.stderr, run.stderr
 
 
 def test_a_map_beside_a_photo_in_a_folder_whose_name_is_not_utf8_is_read(tmp_path):

@@ -645,6 +645,48 @@ def test_an_entrys_depth_naming_a_colour_photo_fails_that_entry_naming_it(tmp_pa
            "a photo" in report.notes
 
 
+def test_a_photo_with_its_own_entry_named_as_a_depth_map_is_still_rendered(tmp_path,
+                                                                          quick_preset):
+    """`"b.jpg": {"depth": "c.png"}, "c.png": {...}`: c.png was dropped as b.jpg's map, and
+    its own entry failed with "no photo of that file name"; `"depth": "b.jpg"` in b.jpg's
+    own entry likewise dropped b.jpg, the photo being there."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320, seed=1)).save(folder / "b.jpg")
+    Image.fromarray(textured_image(180, 320, seed=2)).save(folder / "c.png")
+    manifest = folder / "m.json"
+    for depth_of_b, failing in (("c.png", "c.png: is a colour picture"),
+                                ("b.jpg", "names the photo itself")):
+        manifest.write_text(json.dumps({"version": 1, "images": {
+            "b.jpg": {"depth": depth_of_b}, "c.png": {"planner": "center"}}}))
+        report = run_folder(folder, tmp_path / f"out-{depth_of_b}", quick_preset,
+                            ClipOptions(threads=2), show_progress=False,
+                            manifest=load_manifest(manifest))
+        [failed] = report.failed
+        assert Path(failed.source).name == "b.jpg", failed
+        assert failed.error.startswith(f"{manifest}: image 'b.jpg': field 'depth': "), failed
+        assert failing in failed.error
+        assert [Path(r.source).name for r in report.results if r.status == "done"] == ["c.png"]
+        assert not [note for note in report.notes if "not rendered as a photo" in note]
+
+
+def test_pixel_crops_of_a_pixel_or_less_are_taken_for_fractions_missing_their_units(tmp_path):
+    """Crops of 0.9 and 0.6 "px" (fractions without `"units": "fraction"`) warned that the
+    clip was a still picture, then failed on a crop too small to render, with no word on
+    the units."""
+    path = write(tmp_path / "m.json", {"images": {"a.jpg": {
+        "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.9},
+        "end": {"center_x": 0.5, "center_y": 0.5, "width": 0.6}}}})
+    with pytest.raises(ManifestError, match=r"image 'a.jpg': field 'start': a crop 0.9 px "
+                                            r"wide.*need \"units\": \"fraction\""):
+        load_manifest(path).entry("a.jpg").plan(1600, 900, 1024, 16 / 9, "linear")
+    entry = load_manifest(write(tmp_path / "m.json", {"images": {"a.jpg": {
+        "start": {"center_x": 1.5, "center_y": 1.5, "width": 1.6},
+        "end": {"center_x": 1.5, "center_y": 1.5, "width": 1.2}}}})).entry("a.jpg")
+    plan = entry.plan(1600, 900, 1024, 16 / 9, "linear")  # pixel crops: taken as such
+    assert plan.end.width_px == pytest.approx(1.2 * 1024 / 1600)
+
+
 def test_a_manifest_that_is_not_utf8_is_a_clear_error_and_a_bom_is_fine(tmp_path):
     document = '{"version": 1, "images": {"a.jpg": {"planner": "2d"}}}'
     (tmp_path / "u16.json").write_bytes(document.encode("utf-16"))

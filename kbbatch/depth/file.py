@@ -196,10 +196,27 @@ def load_map(path: Path) -> np.ndarray:
         raise DepthError(f"{path}: expected a 2D map, got shape {data.shape}")
     if data.dtype == np.bool_:  # read as 0 and 1 it was "constant", which it is not
         raise DepthError(f"{path}: holds true/false values (a mask?), not depths")
+    if np.iscomplexobj(data):  # cast, the imaginary parts were dropped with a warning
+        raise DepthError(f"{path}: holds complex numbers, not depths")
+    data = _in_float32_range(data)
     try:
         return data.astype(np.float32)
     except (TypeError, ValueError) as error:  # records, strings: no depth
         raise DepthError(f"{path}: holds {data.dtype}, not numbers") from error
+
+
+def _in_float32_range(data: np.ndarray) -> np.ndarray:
+    """A float64 map scaled to its largest value where its values lie beyond float32's range:
+    cast as they were, 1e-60 m depths all became 0 ("fewer than half of its pixels hold a
+    positive value") and 1e300 ones infinite. A map's scale is free: depth is relative."""
+    if not np.issubdtype(data.dtype, np.floating) or data.dtype.itemsize <= 4:
+        return data
+    with np.errstate(invalid="ignore"):
+        positive = np.abs(data[np.isfinite(data) & (data != 0)])
+    limits = np.finfo(np.float32)
+    if positive.size == 0 or (positive.max() <= limits.max and positive.min() >= limits.tiny):
+        return data
+    return data / positive.max()
 
 
 def load_exr(path: Path) -> np.ndarray:
