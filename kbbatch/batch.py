@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from kbbatch.camera import working_size
 from kbbatch.depth import DepthError
 from kbbatch.images import (
     LONE_MAP_REASON,
@@ -930,22 +931,30 @@ def _keeps_its_entry(entry: ManifestEntry | None, replan: bool) -> bool:
 
 
 def _merged_plans(manifest_path: Path, folder: Path, planned_entries: dict[str, dict],
-                  replan: bool, renamed: dict[str, str]) -> dict[str, dict]:
+                  replan: bool, renamed: dict[str, str], existing: Manifest | None
+                  ) -> tuple[dict[str, dict], set[str]]:
     """The manifest as it is on disk now, with the new plans and the entries of renamed
     photos under their new names: read again at the end, as an edit saved while the photos
-    were planned (from `kbbatch review`) was written over with the copy read at the start."""
+    were planned (from `kbbatch review`) was written over with the copy read at the start.
+    Also the photos whose plans were not used: crops or an exclude saved meanwhile, which are
+    the user's even under replan (existing: the manifest as read at the start)."""
     current = existing_manifest(manifest_path)
     entries = {name: entry.data for name, entry in current.entries.items()} if current else {}
     for new, old in renamed.items():
         if old in entries and new not in entries:
             entries[new] = entries.pop(old)
+    unused = set()
     for name, planned in planned_entries.items():
-        entry = current.entry(renamed.get(name, name), folder) if current else None
-        if _keeps_its_entry(entry, replan):
-            continue  # crops or an exclude saved meanwhile: the user's
+        key = renamed.get(name, name)
+        entry = current.entry(key, folder) if current else None
+        before = existing.entry(key, folder) if existing else None
+        edited = entry is not None and (before is None or entry.data != before.data)
+        if _keeps_its_entry(entry, replan and not edited):
+            unused.add(name)  # crops or an exclude saved meanwhile: the user's
+            continue
         entries[name if name in renamed else entry.image if entry else name] = \
             _with_own_fields(planned, entry)
-    return entries
+    return entries, unused
 
 
 def renamed_photos(manifest: Manifest, photos: list[Path]) -> dict[str, str]:
@@ -984,6 +993,26 @@ def _kept_crops_note(entry: ManifestEntry, source: Path) -> str | None:
             "render scales them (--replan plans it again)")
 
 
+def _kept_crops_unfit(entry: ManifestEntry, source: Path, preset: Preset,
+                     options: ClipOptions) -> str | None:
+    """Why a kept entry's crops cannot be rendered at the preset `plan` was given (planned
+    for a 16:9 clip, kept by a plan for a vertical one), if they cannot: `plan` kept them and
+    printed a render command that then failed on them."""
+    if entry.excluded:
+        return None
+    try:
+        photo_preset, _ = apply_entry(entry, preset, options)
+        width, height = upright_size(source)
+        entry.plan(width, height, working_size(width, height)[0], photo_preset.aspect,
+                   photo_preset.easing)
+    except ManifestError as error:
+        return (f"{error}; its crops are kept, and a render at this preset fails on them: "
+                "plan it again (--replan), or render at the preset they were made for")
+    except ImageReadError:
+        return None  # said by the render, as for any photo
+    return None
+
+
 def _with_own_fields(planned: dict, entry: ManifestEntry | None) -> dict:
     """A photo's new plan with the fields of its entry that planning does not set (its
     preset, duration, depth file)."""
@@ -1018,7 +1047,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             "manifest another name")
     results: list[PlanResult] = []
     planned_entries: dict[str, dict] = {}
-    previews = []
+    drawn: dict[str, tuple] = {}  # each plan's preview (an image) and its file name
     sources = [source for source in scan.photos
                if not (existing and existing.depth_map_of(source))]  # a map it names: no photo
     names = output_names(sources)
@@ -1032,7 +1061,9 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
         entry = (existing.entry(renamed.get(source.name, source.name), source.parent)
                  if existing else None)
         if _keeps_its_entry(entry, replan):
-            results.append(PlanResult(str(source), "kept", entry=entry.data,
+            unfit = _kept_crops_unfit(entry, source, preset, options)
+            results.append(PlanResult(str(source), "failed", error=unfit) if unfit else
+                           PlanResult(str(source), "kept", entry=entry.data,
                                       note=_kept_crops_note(entry, source)))
             continue
         try:
@@ -1044,14 +1075,11 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             planned = plan_to_entry(plan, photo.shape[1], photo.shape[0], working.shape[1],
                                     content)
             planned_entries[source.name] = planned
-            preview = draw_plan(working, plan, f"{source.name} ({plan.planner})")
-            preview_name = names[source].removesuffix(CLIP_SUFFIX) + ".jpg"
-            previews.append(preview)
+            drawn[source.name] = (draw_plan(working, plan, f"{source.name} ({plan.planner})"),
+                                  names[source].removesuffix(CLIP_SUFFIX) + ".jpg")
             results.append(PlanResult(str(source), "done",
                                       entry=_with_own_fields(planned, entry),
-                                      seconds=time.perf_counter() - started,
-                                      note=_written_or_why(preview_dir / preview_name,
-                                                           preview)))
+                                      seconds=time.perf_counter() - started))
         except (ImageReadError, DepthError, ManifestError, CropTooSmallError) as error:
             results.append(PlanResult(str(source), "failed", error=str(error)))
         except Exception as error:  # one photo must never stop the batch
@@ -1059,8 +1087,23 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
                 raise KeyboardInterrupt from error
             message = f"{source}: {type(error).__name__}: {error}"
             results.append(PlanResult(str(source), "failed", error=message))
-    write_manifest(manifest_path, _merged_plans(manifest_path, folder, planned_entries, replan,
-                                                renamed))
+    merged, unused = _merged_plans(manifest_path, folder, planned_entries, replan, renamed,
+                                   existing)
+    write_manifest(manifest_path, merged)
+    previews = []
+    for index, result in enumerate(results):
+        name = Path(result.source).name
+        if result.status != "done" or name not in drawn:
+            continue
+        if name in unused:  # its preview would show crops the manifest does not hold
+            results[index] = PlanResult(result.source, "kept", entry=merged.get(name),
+                                        seconds=result.seconds, note=(
+                f"{result.source}: its entry was saved while it was planned (kbbatch "
+                "review); kept, and this plan dropped"))
+            continue
+        preview, preview_name = drawn[name]
+        previews.append(preview)
+        result.note = _written_or_why(preview_dir / preview_name, preview)
     if existing is not None:  # kept as they are, but a render of the manifest fails on them
         results += [PlanResult(str(manifest_path), "note", note=(
             f"{manifest_path}: image {name!r}: no photo of that file name in {folder}; its "

@@ -586,13 +586,17 @@ def models_list() -> None:
     problems = []
     for spec in model_registry.REGISTRY.values():
         path = model_registry.cached_path(spec.name)
-        problem = model_registry.cache_problem(spec, path) if path else None
-        cached = "missing" if path is None else "DAMAGED" if problem else "cached"
+        if path is None:  # a folder or a pipe under its name: no "missing", as a run says
+            problem = model_registry.no_file_problem(spec)
+        else:
+            damage = model_registry.cache_problem(spec, path)
+            problem = f"{path}: {damage}" if damage else None
+        cached = "DAMAGED" if problem else "missing" if path is None else "cached"
         pinned = "sha256 pinned" if spec.sha256 else "no sha256 registered"
         click.echo(f"{spec.name:<24} {spec.role:<9} {cached:<8} {pinned}; {spec.licence}")
         click.echo(f"{'':<24} {spec.url or 'no single-file download: place ' + spec.filename}")
         if problem:
-            problems.append(f"{path}: {problem}")
+            problems.append(problem)
     for problem in problems:  # a damaged file stops every run: said here too
         click.echo(problem, err=True)
 

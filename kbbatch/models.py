@@ -203,10 +203,9 @@ def check_cache() -> None:
     download. The folder itself as check_models_dir."""
     check_models_dir()
     for spec in REGISTRY.values():  # said as "missing", the run went on without the network
-        path = models_dir() / spec.filename
-        if os.path.lexists(path) and not path.is_file():
-            raise ModelError(f"{path}: has model {spec.name}'s name but is no file (a folder, "
-                             f"a pipe or a broken link); {_remedy(spec)}")
+        problem = no_file_problem(spec)
+        if problem:
+            raise ModelError(problem)
     cached = [(spec, cached_path(spec.name)) for spec in REGISTRY.values()]
     cached = [(spec, path) for spec, path in cached if path is not None]
     if cached or os.environ.get(PROVIDER_ENV, "").strip():  # set: meant, even with no model
@@ -215,6 +214,16 @@ def check_cache() -> None:
         problem = cache_problem(spec, path)
         if problem:
             raise ModelError(f"{path}: {problem}")
+
+
+def no_file_problem(spec: ModelSpec) -> str | None:
+    """What is wrong where something under a model's file name is no file (a folder, a pipe
+    or a broken link), naming it; None where there is a file or nothing."""
+    path = models_dir() / spec.filename
+    if os.path.lexists(path) and not path.is_file():
+        return (f"{path}: has model {spec.name}'s name but is no file (a folder, a pipe or a "
+                f"broken link); {_remedy(spec)}")
+    return None
 
 
 def _remedy(spec: ModelSpec) -> str:

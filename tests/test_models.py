@@ -313,6 +313,13 @@ def test_models_list_says_damaged_and_how_to_mend_a_model_with_no_download(tmp_p
     assert re.search(r"isnet-dis-medium +salient +DAMAGED", listed.output), listed.output
     assert "put the real isnet_dis_medium.onnx there (it has no single-file download" in \
         listed.output  # `models pull` cannot fetch it: that advice was a dead end
+    # a folder under a model's name: listed "missing" (status 0), while every run refused it
+    depth = models.REGISTRY["midas-v21-small"]
+    (tmp_path / depth.filename).mkdir()
+    listed = CliRunner().invoke(main, ["models", "list"])
+    assert re.search(r"midas-v21-small +depth +DAMAGED", listed.output), listed.output
+    assert f"{tmp_path / depth.filename}: has model midas-v21-small's name but is no file" in \
+        listed.output
 
 
 def test_running_a_network_sends_no_telemetry_and_leaves_no_files(tmp_path):

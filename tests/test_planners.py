@@ -921,6 +921,69 @@ def test_plan_keeps_an_edit_saved_while_it_plans_and_skips_the_maps_it_names(
     assert "FAILED" not in again.output and again.exit_code == 0  # it printed "FAILED None"
 
 
+def test_replan_keeps_crops_saved_while_it_plans_and_draws_no_preview_of_its_own_plan(
+        tmp_path, quick_preset, monkeypatch):
+    """`plan --replan` wrote its new plan over crops saved from `kbbatch review` while it
+    planned, without a word; without --replan the save stayed, but the previews and the
+    contact sheet drew the plan dropped."""
+    from click.testing import CliRunner
+
+    from kbbatch import pipeline
+    from kbbatch.cli import main
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for seed, name in enumerate(("a.jpg", "b.jpg")):
+        Image.fromarray(textured_image(180, 320, seed)).save(folder / name)
+    manifest_path = tmp_path / "m.json"
+    monkeypatch.chdir(tmp_path)
+    plan = ["plan", "photos", "-o", "m.json", "--planner", "center", "--preset", "preview"]
+    assert CliRunner().invoke(main, plan).exit_code == 0
+    saved = {"units": "fraction", "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.9},
+             "end": {"center_x": 0.3, "center_y": 0.3, "width": 0.3}}
+    real_get_planner = pipeline.get_planner
+
+    def planner_while_the_user_saves(name):  # the user's save lands during the planning
+        document = json.loads(manifest_path.read_text())
+        document["images"]["a.jpg"] = saved
+        manifest_path.write_text(json.dumps(document))
+        return real_get_planner(name)
+
+    previews = tmp_path / "m-previews"
+    for old in previews.iterdir():
+        old.unlink()
+    monkeypatch.setattr(pipeline, "get_planner", planner_while_the_user_saves)
+    result = CliRunner().invoke(main, [*plan, "--replan"])
+    assert result.exit_code == 0, result.output
+    written = json.loads(manifest_path.read_text())["images"]
+    assert written["a.jpg"] == saved
+    assert written["b.jpg"]["start"] != saved["start"]  # planned again
+    assert "a.jpg: its entry was saved while it was planned" in result.output
+    assert "1 plan(s) written" in result.output
+    assert sorted(p.name for p in previews.iterdir()) == ["b.jpg", "contact-sheet.png"]
+
+
+def test_plan_fails_a_kept_entry_whose_crops_the_preset_cannot_render(tmp_path, quick_preset):
+    """Planned at 16:9, then planned again at 9:16 (kept, as crops of its own), `plan` said
+    all was well and printed a render command that failed on every such photo."""
+    from click.testing import CliRunner
+
+    from kbbatch.cli import main
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320)).save(folder / "a.jpg")
+    plan = ["plan", str(folder), "-o", str(tmp_path / "m.json"), "--planner", "center"]
+    assert CliRunner().invoke(main, [*plan, "--preset", "preview"]).exit_code == 0
+    before = (tmp_path / "m.json").read_text()
+    again = CliRunner().invoke(main, [*plan, "--preset", "social"])
+    assert again.exit_code == 1
+    assert "FAILED" in again.output and "image 'a.jpg': field 'start': aspect 1.778 differs " \
+        "from the output's 0.562; its crops are kept" in again.output, again.output
+    assert (tmp_path / "m.json").read_text() == before
+    assert CliRunner().invoke(main, [*plan, "--preset", "preview"]).exit_code == 0
+
+
 def test_manifest_round_trip_renders_those_exact_crops(tmp_path, quick_preset):
     folder = tmp_path / "photos"
     folder.mkdir()

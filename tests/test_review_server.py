@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import http.client
 import json
 import os
 import re
@@ -353,6 +354,76 @@ def test_one_photo_removed_or_damaged_fails_alone_and_the_page_still_loads(serve
     assert photos["wide.png"]["status"] == "failed"
     assert "wide.png" in photos["wide.png"]["error"]
     assert photos["tall.png"]["status"] == "ready"
+
+
+def test_a_photo_without_crops_removed_damaged_or_replaced_is_listed_as_such(served, folder,
+                                                                            tmp_path):
+    """Only a photo with crops in the manifest was checked again: one removed, cut short or
+    replaced by a link out of the folder while the page was open stayed "ready"."""
+    served.wait_planned()
+    data = (folder / "tall.png").read_bytes()
+    (folder / "tall.png").write_bytes(data[: len(data) // 3])
+    (folder / "wide.png").unlink()
+    photos = {p["name"]: p for p in served.wait_planned()["photos"]}
+    assert photos["wide.png"]["status"] == "failed"
+    assert "wide.png: no longer there" in photos["wide.png"]["error"]
+    assert photos["tall.png"]["status"] == "failed" and "tall.png" in photos["tall.png"]["error"]
+    (folder / "tall.png").write_bytes(data)  # put back: planned again
+    os.symlink(tmp_path / "outside.png", folder / "wide.png")
+    photos = {p["name"]: p for p in served.wait_planned()["photos"]}
+    assert photos["tall.png"]["status"] == "ready", photos["tall.png"]
+    assert photos["wide.png"]["status"] == "failed"
+    assert "a link to a file outside" in photos["wide.png"]["error"]
+
+
+def test_a_stop_during_a_preview_waits_for_it_and_a_stale_partial_preview_goes(folder,
+                                                                             tmp_path):
+    """Stopped while it rendered a preview, the review aborted ("terminate called without
+    an active exception", status -6) and left the preview's partial file in the cache, which
+    no later review removed."""
+    cache = tmp_path / "cache"
+    previews = cache / "review" / "previews"
+    previews.mkdir(parents=True)
+    stale, fresh = previews / ".old.ab12cd34.part.mp4", previews / ".new.ef56ab78.part.mp4"
+    for partial in (stale, fresh):
+        partial.write_bytes(b"half a clip")
+    os.utime(stale, (time.time() - 2 * 3600,) * 2)  # a killed review's; fresh: a live one's
+    command = [sys.executable, "-m", "kbbatch", "review", str(folder), "--manifest",
+               str(tmp_path / "m.json"), "--port", "0", "--depth", "ramp", "--preset",
+               "preview"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=os.environ | {"PYTHONUNBUFFERED": "1",
+                                                            "KBBATCH_CACHE": str(cache)})
+    try:
+        line = process.stdout.readline()
+        url = re.search(r"(http://\S+)/\?token=(\S+)", line)
+        assert url, line
+        assert not stale.exists() and fresh.exists()
+        body = json.dumps({"name": "wide.png", "entry": {
+            "units": "fraction", "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.9},
+            "end": {"center_x": 0.5, "center_y": 0.5, "width": 0.5}}}).encode()
+        request = urllib.request.Request(f"{url[1]}/api/preview", data=body, method="POST",
+                                         headers={TOKEN_HEADER: url[2],
+                                                  "Content-Type": "application/json"})
+        answers = []
+        asking = __import__("threading").Thread(
+            target=lambda: answers.append(urllib.request.urlopen(request, timeout=120).status))
+        asking.start()
+        deadline = time.monotonic() + 60
+        while not list(previews.glob(".*.part.mp4"))[1:] and time.monotonic() < deadline:
+            time.sleep(0.02)  # stopped while the preview is being written
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=120) == 0, process.stderr.read()
+        asking.join(timeout=120)
+        assert answers == [200]
+        assert "terminate called" not in process.stderr.read()
+        assert [p.name for p in previews.iterdir() if p.suffix == ".mp4"
+                and not p.name.startswith(".")], "the preview was finished"
+        assert sorted(previews.glob(".*.part.mp4")) == [fresh]
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
 
 
 def test_a_photo_replaced_by_a_link_out_of_the_folder_is_not_served(served, folder, tmp_path):
@@ -756,3 +827,15 @@ def test_a_request_body_larger_than_any_save_is_refused_unread(served):
                             "Content-Length": str(REQUEST_BODY_MAX_BYTES + 1)})
     assert reply.status == 413
     assert served.post("/api/save", {"entries": {}}).status == 200
+    # sent in chunks (no length said): cut at the limit, a padded object was read and saved
+    body = b'{"entries": {}}' + b" " * REQUEST_BODY_MAX_BYTES
+    connection = http.client.HTTPConnection(served.address, served.port, timeout=120)
+    try:
+        connection.request("POST", "/api/save", body=(body[i:i + (1 << 20)] for i in
+                                                     range(0, len(body), 1 << 20)),
+                           headers={TOKEN_HEADER: served.session.token,
+                                    "Content-Type": "application/json"}, encode_chunked=True)
+        reply = connection.getresponse()
+        assert reply.status == 413, reply.read()[:200]
+    finally:
+        connection.close()

@@ -24,7 +24,7 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -41,6 +41,7 @@ from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.file import load_map
 from kbbatch.fingerprint import clip_inputs, file_sha256
 from kbbatch.images import (
+    TEMP_NAME,
     ImageReadError,
     atomic_output,
     list_images,
@@ -96,6 +97,14 @@ PICTURES_KEPT = 64
 """Encoded photos and depth maps kept in memory (most recently used)."""
 REVIEW_CACHE_VERSION = 1
 """Bump when a change to planning or rendering changes cached plans or previews."""
+PREVIEW_STOP_WAIT_S = 60.0
+"""A stop waits this long at most for the previews being rendered: stopped under them, the
+process aborted ("terminate called without an active exception") and left their partial
+files behind."""
+PARTIAL_PREVIEW_AGE_S = 3600.0
+"""A preview's temporary file this old is left by a review killed while rendering it (a
+preview takes seconds), and removed when a review starts; a younger one may be another
+review's, rendering now into the same cache."""
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +126,7 @@ class PhotoState:
     width_px: int | None = None
     height_px: int | None = None
     auto: dict[str, Any] | None = None  # the automatic plan as a manifest entry (source px)
+    planned_as: tuple[int, int, int] | None = None  # the file's _stat_signature when planned
 
 
 def review_cache_dir() -> Path | None:
@@ -173,6 +183,9 @@ class ReviewSession:
         self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kbbatch-plan")
         self._stopping = False
+        self._rendering = 0  # previews being rendered, which a stop waits for
+        self._rendered = threading.Condition()
+        _remove_partial_previews(self.cache_dir / "previews")
 
     # -- the manifest ----------------------------------------------------------------------
 
@@ -368,11 +381,16 @@ class ReviewSession:
 
     def _plan_in_background(self, name: str) -> None:
         state = self.photos[name]
+        state.planned_as = _stat_signature(state.path)
         try:
+            if state.planned_as is None:
+                raise FileNotFoundError(2, "No such file", str(state.path))
             state.auto = self.auto_plan(name, self.entries.get(name))
-            state.status = "ready"
+            state.status, state.error = "ready", None
         except (ImageReadError, ManifestError) as error:
             state.status, state.error = "failed", str(error)
+        except OSError as error:
+            state.status, state.error = "failed", unreadable_words(error, name)
         except RequestError as error:
             state.status, state.error = "failed", error.message
         except Exception as error:  # one photo must never stop the others
@@ -384,10 +402,40 @@ class ReviewSession:
     def stop(self) -> None:
         self._stopping = True
         self._worker.shutdown(wait=False, cancel_futures=True)
+        with self._rendered:
+            if self._rendering:
+                log.warning("stopping: waiting for %d preview(s) being rendered",
+                            self._rendering)
+            self._rendered.wait_for(lambda: not self._rendering, PREVIEW_STOP_WAIT_S)
         if self._scratch is not None:
             self._scratch.cleanup()
 
+    @contextlib.contextmanager
+    def _rendering_preview(self) -> Iterator[None]:
+        """Counted while a preview renders (stop waits for it); none starts once stopping."""
+        with self._rendered:
+            if self._stopping:
+                raise RequestError(503, "the review is stopping")
+            self._rendering += 1
+        try:
+            yield
+        finally:
+            with self._rendered:
+                self._rendering -= 1
+                self._rendered.notify_all()
+
+    def _plan_again_if_changed(self, name: str) -> None:
+        """A photo removed, damaged or replaced since it was planned is planned again (in the
+        background): listed as ready, it was said to be, until its picture failed to load."""
+        state = self.photos[name]
+        if (state.status != "pending" and not self._stopping
+                and _stat_signature(state.path) != state.planned_as):
+            state.status, state.error = "pending", None
+            with contextlib.suppress(RuntimeError):  # the worker is shut down: stopping
+                self._worker.submit(self._plan_in_background, name)
+
     def photo_json(self, name: str) -> dict[str, Any]:
+        self._plan_again_if_changed(name)
         state = self.photos[name]
         entry = self.entries.get(name)
         result: dict[str, Any] = {
@@ -513,9 +561,10 @@ class ReviewSession:
                 except OSError as error:
                     raise RequestError(500, f"{path.parent}: previews cannot be written "
                                             f"({error.strerror or error})") from error
-                result = make_clip(state.path, path, preset,
-                                   replace(options, threads=PREVIEW_THREADS),
-                                   show_progress=False, entry=clip_entry)
+                with self._rendering_preview():
+                    result = make_clip(state.path, path, preset,
+                                       replace(options, threads=PREVIEW_THREADS),
+                                       show_progress=False, entry=clip_entry)
                 if result.status != "done":
                     if result.detail:
                         log.error("preview of %s failed:\n%s", name, result.detail)
@@ -525,6 +574,19 @@ class ReviewSession:
 
     def preview_path(self, key: str) -> Path:
         return self.cache_dir / "previews" / f"{key}.mp4"
+
+
+def _remove_partial_previews(folder: Path) -> None:
+    """Temporary preview files older than PARTIAL_PREVIEW_AGE_S: a review killed while it
+    rendered a preview left them, and none was ever removed."""
+    now = time.time()
+    for partial in folder.glob(".*.part.mp4"):
+        try:
+            if (TEMP_NAME.match(partial.name) and partial.is_file()
+                    and now - partial.stat().st_mtime > PARTIAL_PREVIEW_AGE_S):
+                partial.unlink()
+        except OSError:  # gone meanwhile, or another user's: not ours to say
+            continue
 
 
 def _stat_signature(path: Path) -> tuple[int, int, int] | None:
@@ -606,8 +668,12 @@ read whole into memory (the server grew to 670 MB)."""
 def _json_body() -> dict[str, Any]:
     """The request's JSON object, read by the manifest's rules (no NaN, huge numbers, repeated
     keys or nesting deep enough to exhaust the stack: that one was a 500)."""
+    raw = request.get_data()
+    if len(raw) >= REQUEST_BODY_MAX_BYTES:  # a chunked body is cut there, not refused
+        raise RequestError(413, f"the request body is {REQUEST_BODY_MAX_BYTES >> 20} MiB or "
+                                "more; not read")
     try:
-        data = parse_manifest_text(request.get_data(as_text=True))
+        data = parse_manifest_text(raw.decode("utf-8"))
     except (ValueError, json.JSONDecodeError) as error:
         raise RequestError(400, f"the request body must be a JSON object ({error})"
                            ) from error
