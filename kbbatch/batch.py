@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from kbbatch.camera import working_size
+from kbbatch.camera import ASPECT_TOLERANCE
 from kbbatch.depth import DepthError
 from kbbatch.images import (
     LONE_MAP_REASON,
@@ -56,6 +56,7 @@ from kbbatch.pipeline import (
     CropTooSmallError,
     LocalExecutor,
     apply_entry,
+    check_depth_is_not_the_photo,
     check_photo_size,
     clip_fingerprints,
     joined_notes,
@@ -945,8 +946,12 @@ def _merged_plans(manifest_path: Path, folder: Path, planned_entries: dict[str, 
             entries[new] = entries.pop(old)
     unused = set()
     for name, planned in planned_entries.items():
-        key = renamed.get(name, name)
-        entry = current.entry(key, folder) if current else None
+        # its own key first: an entry saved meanwhile under a renamed photo's new name
+        own = current.entry(name, folder) if current and name in renamed else None
+        key = name if own is not None else renamed.get(name, name)
+        entry = own or (current.entry(key, folder) if current else None)
+        if own is not None:
+            entries.pop(renamed[name], None)  # the old name's entry: this photo has its own
         before = existing.entry(key, folder) if existing else None
         edited = entry is not None and (before is None or entry.data != before.data)
         if _keeps_its_entry(entry, replan and not edited):
@@ -1002,15 +1007,14 @@ def _kept_crops_unfit(entry: ManifestEntry, source: Path, preset: Preset,
         return None
     try:
         photo_preset, _ = apply_entry(entry, preset, options)
-        width, height = upright_size(source)
-        entry.plan(width, height, working_size(width, height)[0], photo_preset.aspect,
-                   photo_preset.easing)
-    except ManifestError as error:
-        return (f"{error}; its crops are kept, and a render at this preset fails on them: "
-                "plan it again (--replan), or render at the preset they were made for")
-    except ImageReadError:
-        return None  # said by the render, as for any photo
-    return None
+        aspect = entry.crop_aspect(*upright_size(source))
+    except (ManifestError, ImageReadError):
+        return None  # said by the note, or by the render, as for any photo
+    if aspect is None or abs(aspect / photo_preset.aspect - 1) <= ASPECT_TOLERANCE:
+        return None
+    return (f"{entry.where('start')}: its crops are {aspect:.3f} wide to high, the preset's "
+            f"clips {photo_preset.aspect:.3f}; kept, and a render at this preset fails on them: "
+            "plan it again (--replan), or render at the preset they were made for")
 
 
 def _with_own_fields(planned: dict, entry: ManifestEntry | None) -> dict:
@@ -1068,6 +1072,7 @@ def plan_folder(folder: Path, manifest_path: Path, preset: Preset, options: Clip
             continue
         try:
             photo_preset, photo_options = apply_entry(entry, preset, options)
+            check_depth_is_not_the_photo(entry, source)
             photo, content = read_photo(source)  # the bytes planned are those named
             check_photo_size(photo.shape[1], photo.shape[0], photo_preset, source)
             working, depth_result, depth = working_depth(photo, source, photo_options, content)

@@ -388,7 +388,8 @@ def plan(folder: Path, manifest_path: Path, replan: bool, quiet: bool, **shared)
     click.echo(f"{len(done)} plan(s) written to {manifest_path}{previews}")
     if kept:
         click.echo(f"{len(kept)} entr{'y' if len(kept) == 1 else 'ies'} with crops or "
-                   "excluded kept as they were (--replan plans them again)")
+                   "excluded kept as they were " + ("(saved while planning)" if replan else
+                                                    "(--replan plans them again)"))
     # The manifest holds crops: the preset, duration and depth options are the command's.
     # as bytes: a folder name that is not UTF-8 is printed as the shell must be given it
     click.echo(os.fsencode("render them with: " + shlex.join([

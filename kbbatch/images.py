@@ -17,6 +17,7 @@ import re
 import secrets
 import shutil
 import stat
+import threading
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -672,13 +673,24 @@ def read_image_bytes(path: Path, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarra
         return cv2.imdecode(data, flags)
 
 
+_silenced = {"depth": 0, "level": 0}
+_silenced_lock = threading.Lock()
+
+
 @contextmanager
 def opencv_silenced() -> Iterator[None]:
     """OpenCV's own log lines kept off the terminal while it decodes: what is wrong with a
-    file is said once, in this tool's words, naming the file."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    file is said once, in this tool's words, naming the file. (Its log level is the
+    process's: counted, so that two decodes at once do not leave it silent for good.)"""
+    with _silenced_lock:
+        if not _silenced["depth"]:
+            _silenced["level"] = cv2.utils.logging.getLogLevel()
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        _silenced["depth"] += 1
     try:
         yield
     finally:
-        cv2.utils.logging.setLogLevel(level)
+        with _silenced_lock:
+            _silenced["depth"] -= 1
+            if not _silenced["depth"]:
+                cv2.utils.logging.setLogLevel(_silenced["level"])

@@ -112,6 +112,16 @@ class ManifestEntry:
                     planner="manifest", parallax=self.data.get("planner") != FLAT_PLANNER)
 
 
+    def crop_aspect(self, source_width_px: int, source_height_px: int) -> float | None:
+        """The width-to-height ratio of the start crop on the photo, where the entry gives
+        its height (else the crop takes the output's aspect)."""
+        crop = self.data.get("start")
+        if not crop or "height" not in crop or not crop["height"]:
+            return None
+        if self.data.get("units", "px") == "fraction":
+            return crop["width"] * source_width_px / (crop["height"] * source_height_px)
+        return crop["width"] / crop["height"]
+
     def resized(self, source_width_px: int, source_height_px: int) -> tuple[float, float]:
         """How much the photo was enlarged across and down since its pixel crops were made
         (1, 1 when the entry does not say for what size): crops made for a photo that has
@@ -191,8 +201,7 @@ class Manifest:
         photo folder is no photo (it was rendered as one); unless it has an entry of its own
         (a photo named as another's map, or as its own, was dropped, and its entry then said
         there was no photo of that name)."""
-        if path.name in self.entries or _normal(path.name) in {_normal(name) for name in
-                                                               self.entries}:
+        if self.entry(path.name, path.parent) is not None:
             return None  # a photo with an entry of its own: its map is refused when read
         resolved = path.resolve()
         return next((name for name, entry in self.entries.items()

@@ -94,16 +94,22 @@ def check_writable(folder: Path) -> None:
                                 f"({error.strerror or error})") from error
 
 
-def remove_partial_clips(folder: Path) -> list[Path]:
+def remove_partial_clips(folder: Path, older_than_s: float = 0.0) -> list[Path]:
     """Temporary files (`.NAME.XXXX.part.mp4`: a clip, or a photo's copy to done/ on another
     disk) left by a killed run; call with the folder locked, so that no live run's file is
-    taken."""
+    taken, or with older_than_s, an age no live run's file reaches (a folder no lock keeps:
+    the review's previews)."""
+    import time
+
     from kbbatch.images import TEMP_NAME
 
     removed = []
+    now = time.time()
     for partial in folder.glob(".*.part.*"):
         if TEMP_NAME.match(partial.name) and not partial.is_dir():
             try:
+                if older_than_s and now - partial.stat().st_mtime <= older_than_s:
+                    continue
                 partial.unlink(missing_ok=True)
             except OSError as error:  # another user's, in a sticky folder: a traceback before
                 log.warning("%s: a partial clip left by an interrupted run; kept, since it "

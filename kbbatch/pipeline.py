@@ -695,6 +695,14 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
     return preset, replace(options, depth=entry_depth(entry, options.depth))
 
 
+def check_depth_is_not_the_photo(entry: ManifestEntry | None, source: Path) -> None:
+    """Refuse an entry whose `depth` names its own photo (read as its own depth map, a grey
+    photo was taken for one)."""
+    if entry is not None and entry.depth_file == source.resolve():
+        raise ManifestError(f"{entry.where('depth')}: names the photo itself; its depth map is "
+                            "a file of its own (<stem>.depth.png, or .npy)")
+
+
 def entry_depth(entry: ManifestEntry | None, depth: DepthOptions) -> DepthOptions:
     """The depth options for a photo: with the depth file its manifest entry names."""
     if entry is None or entry.depth_file is None:
@@ -722,9 +730,7 @@ def make_clip(
     try:
         preset, options = apply_entry(entry, preset, options)
         result.preset = preset.name
-        if entry is not None and entry.depth_file == source.resolve():
-            raise ManifestError(f"{entry.where('depth')}: names the photo itself; its depth "
-                                "map is a file of its own (<stem>.depth.png, or .npy)")
+        check_depth_is_not_the_photo(entry, source)
         clock = time.perf_counter()
         photo, result.content = read_photo(source)
         timings["read"] = time.perf_counter() - clock

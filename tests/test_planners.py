@@ -668,6 +668,11 @@ def test_a_photo_with_its_own_entry_named_as_a_depth_map_is_still_rendered(tmp_p
         assert failing in failed.error
         assert [Path(r.source).name for r in report.results if r.status == "done"] == ["c.png"]
         assert not [note for note in report.notes if "not rendered as a photo" in note]
+    # `plan` likewise: it planned the photo with itself as its depth map
+    planned = {Path(r.source).name: r for r in plan_folder(
+        folder, manifest, quick_preset, ClipOptions(threads=2), show_progress=False)}
+    assert planned["b.jpg"].status == "failed"
+    assert "field 'depth': names the photo itself" in planned["b.jpg"].error
 
 
 def test_pixel_crops_of_a_pixel_or_less_are_taken_for_fractions_missing_their_units(tmp_path):
@@ -939,8 +944,13 @@ def test_replan_keeps_crops_saved_while_it_plans_and_draws_no_preview_of_its_own
     monkeypatch.chdir(tmp_path)
     plan = ["plan", "photos", "-o", "m.json", "--planner", "center", "--preset", "preview"]
     assert CliRunner().invoke(main, plan).exit_code == 0
+    first = json.loads(manifest_path.read_text())["images"]
     saved = {"units": "fraction", "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.9},
              "end": {"center_x": 0.3, "center_y": 0.3, "width": 0.3}}
+    before = {"units": "fraction", "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.8},
+              "end": {"center_x": 0.6, "center_y": 0.6, "width": 0.4}}
+    manifest_path.write_text(json.dumps({"version": 1, "images": {"a.jpg": before,
+                                                                   "b.jpg": before}}))
     real_get_planner = pipeline.get_planner
 
     def planner_while_the_user_saves(name):  # the user's save lands during the planning
@@ -957,10 +967,46 @@ def test_replan_keeps_crops_saved_while_it_plans_and_draws_no_preview_of_its_own
     assert result.exit_code == 0, result.output
     written = json.loads(manifest_path.read_text())["images"]
     assert written["a.jpg"] == saved
-    assert written["b.jpg"]["start"] != saved["start"]  # planned again
+    assert written["b.jpg"] == first["b.jpg"]  # crops from before the run: planned again
     assert "a.jpg: its entry was saved while it was planned" in result.output
+    assert "1 entry with crops or excluded kept as they were (saved while planning)" in \
+        result.output
     assert "1 plan(s) written" in result.output
     assert sorted(p.name for p in previews.iterdir()) == ["b.jpg", "contact-sheet.png"]
+
+
+def test_replan_keeps_crops_saved_meanwhile_under_a_renamed_photos_new_name(
+        tmp_path, quick_preset, monkeypatch):
+    """A photo renamed since it was planned, its crops saved under the new name while `plan
+    --replan` ran: the plan was written over them (looked for under the old name), and the
+    old name's entry stayed, naming no photo."""
+    from click.testing import CliRunner
+
+    from kbbatch import pipeline
+    from kbbatch.cli import main
+
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    Image.fromarray(textured_image(180, 320, 3)).save(folder / "a.jpg")
+    manifest_path = tmp_path / "m.json"
+    monkeypatch.chdir(tmp_path)
+    plan = ["plan", "photos", "-o", "m.json", "--planner", "center", "--preset", "preview"]
+    assert CliRunner().invoke(main, plan).exit_code == 0
+    (folder / "a.jpg").rename(folder / "c.jpg")
+    saved = {"units": "fraction", "start": {"center_x": 0.5, "center_y": 0.5, "width": 0.9},
+             "end": {"center_x": 0.3, "center_y": 0.3, "width": 0.3}}
+    real_get_planner = pipeline.get_planner
+
+    def planner_while_the_user_saves(name):
+        document = json.loads(manifest_path.read_text())
+        document["images"]["c.jpg"] = saved
+        manifest_path.write_text(json.dumps(document))
+        return real_get_planner(name)
+
+    monkeypatch.setattr(pipeline, "get_planner", planner_while_the_user_saves)
+    result = CliRunner().invoke(main, [*plan, "--replan"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(manifest_path.read_text())["images"] == {"c.jpg": saved}
 
 
 def test_plan_fails_a_kept_entry_whose_crops_the_preset_cannot_render(tmp_path, quick_preset):
@@ -978,8 +1024,8 @@ def test_plan_fails_a_kept_entry_whose_crops_the_preset_cannot_render(tmp_path, 
     before = (tmp_path / "m.json").read_text()
     again = CliRunner().invoke(main, [*plan, "--preset", "social"])
     assert again.exit_code == 1
-    assert "FAILED" in again.output and "image 'a.jpg': field 'start': aspect 1.778 differs " \
-        "from the output's 0.562; its crops are kept" in again.output, again.output
+    assert "FAILED" in again.output and "image 'a.jpg': field 'start': its crops are 1.778 " \
+        "wide to high, the preset's clips 0.562; kept" in again.output, again.output
     assert (tmp_path / "m.json").read_text() == before
     assert CliRunner().invoke(main, [*plan, "--preset", "preview"]).exit_code == 0
 

@@ -24,7 +24,7 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -34,6 +34,7 @@ import cv2
 from flask import Flask, Response, jsonify, redirect, request, send_file
 from werkzeug.exceptions import HTTPException
 from werkzeug.serving import make_server
+from werkzeug.wsgi import ClosingIterator
 
 from kbbatch.camera import SceneGeometry, working_size
 from kbbatch.depth import DepthError
@@ -41,7 +42,6 @@ from kbbatch.depth import cache as depth_cache
 from kbbatch.depth.file import load_map
 from kbbatch.fingerprint import clip_inputs, file_sha256
 from kbbatch.images import (
-    TEMP_NAME,
     ImageReadError,
     atomic_output,
     list_images,
@@ -57,7 +57,7 @@ from kbbatch.manifest import (
     plan_to_entry,
     write_manifest,
 )
-from kbbatch.outputs import OutputFolderError, check_writable
+from kbbatch.outputs import OutputFolderError, check_writable, remove_partial_clips
 from kbbatch.pipeline import (
     ClipOptions,
     CropTooSmallError,
@@ -97,10 +97,10 @@ PICTURES_KEPT = 64
 """Encoded photos and depth maps kept in memory (most recently used)."""
 REVIEW_CACHE_VERSION = 1
 """Bump when a change to planning or rendering changes cached plans or previews."""
-PREVIEW_STOP_WAIT_S = 60.0
-"""A stop waits this long at most for the previews being rendered: stopped under them, the
-process aborted ("terminate called without an active exception") and left their partial
-files behind."""
+STOP_WAIT_S = 60.0
+"""A stop waits this long at most for the requests being answered (a preview rendering, a
+depth map worked out): stopped under them, the process aborted ("terminate called without an
+active exception") and left a preview's partial file behind."""
 PARTIAL_PREVIEW_AGE_S = 3600.0
 """A preview's temporary file this old is left by a review killed while rendering it (a
 preview takes seconds), and removed when a review starts; a younger one may be another
@@ -183,9 +183,10 @@ class ReviewSession:
         self._images: OrderedDict[tuple[str, str, str], bytes] = OrderedDict()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kbbatch-plan")
         self._stopping = False
-        self._rendering = 0  # previews being rendered, which a stop waits for
-        self._rendered = threading.Condition()
-        _remove_partial_previews(self.cache_dir / "previews")
+        self._answering = 0  # requests being answered, which a stop waits for
+        self._answered = threading.Condition()
+        # a review killed while it rendered a preview left its partial file, for good
+        remove_partial_clips(self.cache_dir / "previews", PARTIAL_PREVIEW_AGE_S)
 
     # -- the manifest ----------------------------------------------------------------------
 
@@ -382,15 +383,15 @@ class ReviewSession:
     def _plan_in_background(self, name: str) -> None:
         state = self.photos[name]
         state.planned_as = _stat_signature(state.path)
+        if state.planned_as is None:  # removed since it was listed
+            state.status = "failed"
+            state.error = unreadable_words(FileNotFoundError(2, "gone", str(state.path)), name)
+            return
         try:
-            if state.planned_as is None:
-                raise FileNotFoundError(2, "No such file", str(state.path))
             state.auto = self.auto_plan(name, self.entries.get(name))
             state.status, state.error = "ready", None
         except (ImageReadError, ManifestError) as error:
             state.status, state.error = "failed", str(error)
-        except OSError as error:
-            state.status, state.error = "failed", unreadable_words(error, name)
         except RequestError as error:
             state.status, state.error = "failed", error.message
         except Exception as error:  # one photo must never stop the others
@@ -402,37 +403,44 @@ class ReviewSession:
     def stop(self) -> None:
         self._stopping = True
         self._worker.shutdown(wait=False, cancel_futures=True)
-        with self._rendered:
-            if self._rendering:
-                log.warning("stopping: waiting for %d preview(s) being rendered",
-                            self._rendering)
-            self._rendered.wait_for(lambda: not self._rendering, PREVIEW_STOP_WAIT_S)
+        with self._answered:
+            if self._answering:
+                log.warning("stopping: waiting for %d request(s) being answered (a preview "
+                            "rendering)", self._answering)
+            self._answered.wait_for(lambda: not self._answering, STOP_WAIT_S)
         if self._scratch is not None:
             self._scratch.cleanup()
 
-    @contextlib.contextmanager
-    def _rendering_preview(self) -> Iterator[None]:
-        """Counted while a preview renders (stop waits for it); none starts once stopping."""
-        with self._rendered:
-            if self._stopping:
-                raise RequestError(503, "the review is stopping")
-            self._rendering += 1
-        try:
-            yield
-        finally:
-            with self._rendered:
-                self._rendering -= 1
-                self._rendered.notify_all()
+    def answering(self, app: Callable) -> Callable:
+        """The WSGI application app, each request counted until its answer has been sent
+        (the server closes the answer then), so that a stop waits for it."""
+        def counted(environ: dict, start_response: Callable) -> Any:
+            with self._answered:
+                self._answering += 1
+            try:
+                return ClosingIterator(app(environ, start_response), self._answer_sent)
+            except BaseException:
+                self._answer_sent()
+                raise
+
+        return counted
+
+    def _answer_sent(self) -> None:
+        with self._answered:
+            self._answering -= 1
+            self._answered.notify_all()
 
     def _plan_again_if_changed(self, name: str) -> None:
         """A photo removed, damaged or replaced since it was planned is planned again (in the
         background): listed as ready, it was said to be, until its picture failed to load."""
         state = self.photos[name]
-        if (state.status != "pending" and not self._stopping
-                and _stat_signature(state.path) != state.planned_as):
+        with self._lock:  # two pages asking at once plan it once
+            if (state.status == "pending" or self._stopping
+                    or _stat_signature(state.path) == state.planned_as):
+                return
             state.status, state.error = "pending", None
-            with contextlib.suppress(RuntimeError):  # the worker is shut down: stopping
-                self._worker.submit(self._plan_in_background, name)
+        with contextlib.suppress(RuntimeError):  # the worker is shut down: stopping
+            self._worker.submit(self._plan_in_background, name)
 
     def photo_json(self, name: str) -> dict[str, Any]:
         self._plan_again_if_changed(name)
@@ -561,10 +569,9 @@ class ReviewSession:
                 except OSError as error:
                     raise RequestError(500, f"{path.parent}: previews cannot be written "
                                             f"({error.strerror or error})") from error
-                with self._rendering_preview():
-                    result = make_clip(state.path, path, preset,
-                                       replace(options, threads=PREVIEW_THREADS),
-                                       show_progress=False, entry=clip_entry)
+                result = make_clip(state.path, path, preset,
+                                   replace(options, threads=PREVIEW_THREADS),
+                                   show_progress=False, entry=clip_entry)
                 if result.status != "done":
                     if result.detail:
                         log.error("preview of %s failed:\n%s", name, result.detail)
@@ -574,19 +581,6 @@ class ReviewSession:
 
     def preview_path(self, key: str) -> Path:
         return self.cache_dir / "previews" / f"{key}.mp4"
-
-
-def _remove_partial_previews(folder: Path) -> None:
-    """Temporary preview files older than PARTIAL_PREVIEW_AGE_S: a review killed while it
-    rendered a preview left them, and none was ever removed."""
-    now = time.time()
-    for partial in folder.glob(".*.part.mp4"):
-        try:
-            if (TEMP_NAME.match(partial.name) and partial.is_file()
-                    and now - partial.stat().st_mtime > PARTIAL_PREVIEW_AGE_S):
-                partial.unlink()
-        except OSError:  # gone meanwhile, or another user's: not ours to say
-            continue
 
 
 def _stat_signature(path: Path) -> tuple[int, int, int] | None:
@@ -719,6 +713,7 @@ def create_app(session: ReviewSession, allowed_hosts: tuple[str, ...] | None = L
     app.json.sort_keys = False
     app.url_map.merge_slashes = False  # '//' is refused, not redirected
     app.config["MAX_CONTENT_LENGTH"] = REQUEST_BODY_MAX_BYTES  # larger: 413, unread
+    app.wsgi_app = session.answering(app.wsgi_app)  # type: ignore[method-assign]
 
     def is_token(sent: str | None) -> bool:
         return bool(sent) and secrets.compare_digest(sent.encode(), session.token.encode())
