@@ -184,12 +184,16 @@ def _preset(options: dict) -> Preset:
         preset = load_preset(options.pop("preset_name"))
     except PresetError as error:
         raise click.BadParameter(str(error), param_hint="--preset") from error
+    overrides = []
     for hint, setting, value in (("--duration", "duration_s", options.pop("duration")),
                                  ("--fps", "fps", options.pop("fps"))):
         try:
             preset = with_overrides(preset, **{setting: value})
         except PresetError as error:
             raise click.BadParameter(str(error), param_hint=hint) from error
+        if value is not None:
+            overrides.append((setting, value))
+    options["preset_overrides"] = tuple(overrides)  # for _clip_options: an entry's preset too
     return preset
 
 
@@ -220,7 +224,8 @@ def _clip_options(options: dict, **more) -> ClipOptions:
             except DeviceError as error:
                 raise click.BadParameter(str(error), param_hint="--device") from error
         more["device"] = device
-    return ClipOptions(planner=options.pop("planner"), depth=depth, **more)
+    return ClipOptions(planner=options.pop("planner"), depth=depth,
+                       preset_overrides=options.pop("preset_overrides", ()), **more)
 
 
 def _finite_number(context: click.Context, param: click.Parameter, value: float) -> float:

@@ -368,7 +368,11 @@ def is_cut_short_clip(path: Path, written_size_bytes: int) -> bool:
             head = handle.read(8)
     except OSError:
         return False
-    if size >= written_size_bytes or head[4:8] != b"ftyp":
+    if size >= written_size_bytes:
+        return False
+    if len(head) < 8:  # stopped within the first box's header (empty: failed at its start)
+        return b"ftyp".startswith(head[4:])
+    if head[4:8] != b"ftyp":
         return False
     return not is_whole_clip(path, if_unknown=True)
 

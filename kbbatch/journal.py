@@ -33,7 +33,8 @@ COLUMNS = (("source", "TEXT PRIMARY KEY"), ("fingerprint", "TEXT NOT NULL"),
            ("settings", "TEXT NOT NULL"), ("state", "TEXT NOT NULL"), ("output", "TEXT"),
            ("error", "TEXT"), ("attempts", "INTEGER NOT NULL DEFAULT 0"), ("seconds", "REAL"),
            ("updated", "REAL NOT NULL"), ("content", "TEXT"), ("clip", "TEXT"),
-           ("folder", "TEXT"), ("taken", "TEXT"))
+           ("folder", "TEXT"), ("taken", "TEXT"), ("kept_settings", "TEXT"),
+           ("kept_clip", "TEXT"))
 
 
 UNDECODABLE_PREFIX = "//bytes:"
@@ -129,6 +130,8 @@ class Job:
     clip: str | None  # size and mtime of the finished clip, to notice a truncated one
     folder: str | None = None  # folder_id of the photo's folder when it was started
     taken: str | None = None  # images.capture_time of the photo then
+    kept_settings: str | None = None  # the settings and clip of the done clip still at the
+    kept_clip: str | None = None  # output while a later attempt is unfinished (restore_kept)
 
     @property
     def name(self) -> str:
@@ -362,13 +365,41 @@ class Journal:
               content: str, taken: str | None = None) -> None:
         previous = self.get(source)
         attempts = previous.attempts if previous and previous.fingerprint == fingerprint else 0
+        kept: tuple[str | None, str | None] = (None, None)  # the clip this attempt replaces
+        if previous and previous.output == output and previous.content == content:
+            kept = ((previous.settings, previous.clip) if previous.state == "done"
+                    else (previous.kept_settings, previous.kept_clip))
         self.connection.execute(
             "INSERT OR REPLACE INTO jobs (source, fingerprint, settings, state, output, error,"
-            " attempts, seconds, updated, content, clip, folder, taken)"
-            " VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?, ?, NULL, ?, ?)",
+            " attempts, seconds, updated, content, clip, folder, taken, kept_settings,"
+            " kept_clip) VALUES (?, ?, ?, 'running', ?, NULL, ?, NULL, ?, ?, NULL, ?, ?, ?, ?)",
             (_stored(source), fingerprint, settings, _stored(output), attempts + 1, time.time(),
-             content, folder_id(Path(source).parent), taken),
+             content, folder_id(Path(source).parent), taken, *kept),
         )
+
+    @_guarded
+    def restore_kept(self, source: Path, settings: tuple[str, ...], output: Path,
+                     content: str) -> bool:
+        """An unfinished attempt's record (failed, or stopped) back to the done clip it was
+        to replace, where that clip is still at its name, of its size, and of one of these
+        settings: a run with another preset that failed at every photo wrote over the records
+        of the clips still there, and the next run with their settings made them all again.
+        Whether it was restored."""
+        job = self.get(source)
+        if (job is None or job.state == "done" or job.kept_settings not in settings
+                or job.output != output.name or job.content != content):
+            return False
+        try:
+            size = output.stat().st_size
+        except OSError:
+            return False
+        if clip_size(job.kept_clip) != size:
+            return False
+        self.connection.execute(
+            "UPDATE jobs SET state = 'done', settings = kept_settings, clip = kept_clip,"
+            " error = NULL, kept_settings = NULL, kept_clip = NULL, updated = ?"
+            " WHERE source = ?", (time.time(), _stored(source)))
+        return True
 
     @_guarded
     def finish(self, source: Path, state: str, seconds: float, error: str | None = None,
@@ -379,6 +410,9 @@ class Journal:
             "UPDATE jobs SET state = ?, seconds = ?, error = ?, clip = ?, updated = ?,"
             " content = COALESCE(?, content) WHERE source = ?",
             (state, seconds, _message(error), clip, time.time(), content, _stored(source)))
+        if state == "done":  # the clip kept is replaced
+            self.connection.execute("UPDATE jobs SET kept_settings = NULL, kept_clip = NULL"
+                                     " WHERE source = ?", (_stored(source),))
 
     @_guarded
     def moved(self, source: Path, destination: Path) -> None:

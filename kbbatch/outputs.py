@@ -170,6 +170,7 @@ def name_job(journal, source: Path, output_folder: Path, preferred: str,
         previous = journal.job_of(source, content)  # this directory's own, set aside
     name = journal.clip_name(source, content, preferred, output_folder, save_depth)
     output = output_folder / name
+    journal.restore_kept(source, settings, output, content)  # a later attempt failed
     up_to_date = journal.is_up_to_date(source, fingerprint, settings, output, content)
     if not force and up_to_date and not (save_depth and depth_images_missing(output)):
         journal.place(source, content, taken)

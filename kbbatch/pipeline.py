@@ -108,6 +108,9 @@ class ClipOptions:
     device: str = "cpu"
     """Where frames are rendered: a --device value (auto, cpu or cuda), resolved by the
     process that renders, or kbbatch.device.TORCH_CPU."""
+    preset_overrides: tuple[tuple[str, float], ...] = ()
+    """The command line's --duration and --fps ((setting, value) pairs), already in the run's
+    preset and put over a preset a manifest entry names too (they were dropped there)."""
 
 
 @dataclass
@@ -187,7 +190,7 @@ def check_cloud_size(scale: float, plan: Plan, scene: SceneGeometry, preset: Pre
         raise CropTooSmallError(
             f"{photo_path or 'photo'}: too small for {preset.width_px} px wide clips (its "
             f"tightest crop, {tightest_px:.4g} of its {source_width_px} px, would be enlarged "
-            f"{enlargement:,.0f}x into a {points / 1e6:,.0f} M-point cloud; the limits are "
+            f"{enlargement:,.1f}x into a {points / 1e6:,.0f} M-point cloud; the limits are "
             f"{MAX_PHOTO_ENLARGEMENT:.0f}x and {MAX_CLOUD_POINTS / 1e6:.0f} M): use a larger "
             "photo, or a preset with a smaller output")
     if points <= MAX_CLOUD_POINTS:
@@ -217,7 +220,7 @@ def check_photo_size(photo_width_px: int, photo_height_px: int, preset: Preset,
             f"{photo_path or 'photo'}: too small for {preset.width_px} px wide clips (it is "
             f"{photo_width_px}x{photo_height_px} px: its widest {preset.width_px}:"
             f"{preset.height_px} crop, {widest_px:.4g} px wide, would be enlarged "
-            f"{enlargement:,.0f}x; the limit is {MAX_PHOTO_ENLARGEMENT:.0f}x): use a larger "
+            f"{enlargement:,.1f}x; the limit is {MAX_PHOTO_ENLARGEMENT:.0f}x): use a larger "
             "photo, or a preset with a smaller output")
 
 
@@ -679,7 +682,9 @@ def apply_entry(entry: ManifestEntry | None, preset: Preset, options: ClipOption
     data = entry.data
     try:
         if "preset" in data:
-            preset = load_preset(data["preset"], relative_to=entry.manifest.parent)
+            preset = with_overrides(load_preset(data["preset"],
+                                                relative_to=entry.manifest.parent),
+                                    **dict(options.preset_overrides))
     except PresetError as error:
         raise ManifestError(f"{entry.where('preset')}: {error}") from error
     try:

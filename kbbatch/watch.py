@@ -53,6 +53,7 @@ from kbbatch.journal import (
     FolderLock,
     Journal,
     JournalError,
+    clip_size,
     folder_key,
     in_folder,
     source_fingerprint,
@@ -1273,20 +1274,39 @@ MISSING_NAMED_MAX = 3
 
 
 def missing_clip_lines(outbox: Path, journal: Journal) -> list[str]:
-    """Clips the journal counts done that are no longer in the folder (deleted by hand):
-    status read as if every clip were there. Those of photos still where they were are made
-    again by the next run of their folder."""
-    missing = sorted(job.output for job in journal.jobs("done")
-                     if job.output and not os.path.lexists(outbox / job.output)
-                     and os.path.lexists(job.source)
-                     # a daemon's (one of a version that wrote no note of its inbox)
-                     and Path(job.source).parent.name not in (DONE_FOLDER, FAILED_FOLDER))
-    if not missing:
-        return []
-    more = len(missing) - MISSING_NAMED_MAX
-    return [f"MISSING {len(missing)} clip(s) counted done are not in {outbox} (deleted?): "
-            + ", ".join(missing[:MISSING_NAMED_MAX]) + (f" and {more} more" if more > 0 else "")
-            + "; the next run of their photos' folder makes them again"]
+    """Clips the journal counts done that are no longer in the folder (deleted by hand), or
+    no longer of the size written (cut short, or a file saved over them): status read as if
+    every clip were there and whole. Those of photos still where they were are made again
+    by the next run of their folder."""
+    missing, changed = [], []
+    for job in journal.jobs("done"):
+        # a daemon's (one of a version that wrote no note of its inbox) is not followed
+        if (not job.output or not os.path.lexists(job.source)
+                or Path(job.source).parent.name in (DONE_FOLDER, FAILED_FOLDER)):
+            continue
+        try:
+            size = (outbox / job.output).stat().st_size
+        except FileNotFoundError:
+            missing.append(job.output)
+            continue
+        except OSError:
+            continue
+        if clip_size(job.clip) not in (None, size):
+            changed.append(job.output)
+
+    def line(word: str, names: list[str], what: str, then: str) -> list[str]:
+        if not names:
+            return []
+        more = len(names) - MISSING_NAMED_MAX
+        return [f"{word} {len(names)} clip(s) counted done {what}: "
+                + ", ".join(sorted(names)[:MISSING_NAMED_MAX])
+                + (f" and {more} more" if more > 0 else "") + f"; {then}"]
+
+    return (line("MISSING", missing, f"are not in {outbox} (deleted?)",
+                 "the next run of their photos' folder makes them again")
+            + line("CHANGED", changed, "are not as written (cut short, or saved over?)",
+                   "the next run of their photos' folder makes them again (beside a file "
+                   "of yours, never over it)"))
 
 
 def waiting_in_inbox(outbox: Path, journal: Journal) -> tuple[Path, list[Path]] | None:

@@ -339,3 +339,36 @@ def test_save_depth_refuses_the_photo_folder_by_any_path(tmp_path):
             subprocess.run(["umount", "-l", str(mount)], check=False)
     if bound.returncode != 0:  # the folder and the link were checked
         pytest.skip(f"cannot bind-mount here: {bound.stderr.decode().strip()}")
+
+
+def test_fps_and_duration_on_the_command_line_apply_under_an_entrys_own_preset(tmp_path):
+    """`--fps 10 --duration 2` made a photo whose manifest entry names a preset at that
+    preset's 25 fps and 1 s, without a word (the entry's preset was loaded afresh)."""
+    import json
+
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from kbbatch.encode import probe
+    from tests.conftest import textured_image
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for seed, name in enumerate(("a.jpg", "b.jpg")):
+        Image.fromarray(textured_image(180, 320, seed)).save(photos / name)
+    (tmp_path / "tiny.toml").write_text(
+        'base = "preview"\nwidth_px = 160\nheight_px = 90\nduration_s = 1\nfps = 25\n')
+    manifest = tmp_path / "m.json"
+    manifest.write_text(json.dumps({"version": 1, "images": {"a.jpg": {"preset": "tiny.toml"},
+                                                             "b.jpg": {"preset": "tiny.toml",
+                                                                       "duration_s": 1.5}}}))
+    result = CliRunner().invoke(cli.main, [
+        str(photos), "-o", str(tmp_path / "out"), "-p", str(tmp_path / "tiny.toml"),
+        "--manifest", str(manifest), "--fps", "10", "--duration", "2", "--depth", "ramp",
+        "--quiet"])
+    assert result.exit_code == 0, result.output
+    a, b = (probe(tmp_path / "out" / name) for name in ("a.mp4", "b.mp4"))
+    assert a.fps == pytest.approx(10) and b.fps == pytest.approx(10)
+    # 2 s forward, then back; the entry's own duration_s beats --duration
+    assert a.duration_s == pytest.approx((2 * 20 - 2) / 10, abs=0.15)
+    assert b.duration_s == pytest.approx((2 * 15 - 2) / 10, abs=0.15)

@@ -383,7 +383,13 @@ def test_status_says_a_clip_deleted_by_hand(tmp_path):
         return subprocess.run([*CLI, "status", str(out)], capture_output=True,
                               text=True).stdout
 
-    assert "MISSING" not in status()
+    assert "MISSING" not in status() and "CHANGED" not in status()
+    whole = (out / "a.mp4").read_bytes()
+    (out / "a.mp4").write_bytes(whole[:3000])  # cut short: said too (it said nothing)
+    assert "CHANGED 1 clip(s) counted done are not as written (cut short, or saved over?): " \
+        "a.mp4; the next run" in status()
+    (out / "a.mp4").write_bytes(whole)
+    assert "CHANGED" not in status()
     (out / "a.mp4").unlink()
     assert f"MISSING 1 clip(s) counted done are not in {out} (deleted?): a.mp4; the next " \
         "run of their photos' folder makes them again" in status()
@@ -1553,14 +1559,18 @@ def test_plan_beside_the_photos_adds_no_photo_and_survives_a_name_that_is_not_ut
 
 
 # --- 10: truncated clips, links, subfolders, empty folders, logs -----------------------------
-def test_a_truncated_clip_is_not_up_to_date(tmp_path, quick_preset):
+@pytest.mark.parametrize("kept", [1 / 3, 0.0])
+def test_a_truncated_clip_is_not_up_to_date(tmp_path, quick_preset, kept):
+    """An empty file at the clip's name (a copy that failed at its start) was taken for a
+    file of the user's: kept for good, the clip made beside it under a content name."""
     photo(tmp_path / "in" / "a.jpg", seed=1)
     run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
     clip = tmp_path / "out" / "a.mp4"
     whole = clip.read_bytes()
-    clip.write_bytes(whole[: len(whole) // 3])
+    clip.write_bytes(whole[: int(len(whole) * kept)])
     report = run_folder(tmp_path / "in", tmp_path / "out", quick_preset, FAST, False)
     assert [r.status for r in report.results] == ["done"]
+    assert [Path(r.output).name for r in report.results] == ["a.mp4"]
     assert clip.stat().st_size == len(whole)
 
 
@@ -1901,7 +1911,8 @@ def test_a_journal_with_a_photo_under_two_spellings_settles_on_one(tmp_path, qui
     try:  # the same record under the link's spelling, as the earlier version left it
         journal.connection.execute(
             "INSERT INTO jobs SELECT ?, fingerprint, settings, state, output, error, attempts,"
-            " seconds, updated + 1, content, clip, folder, taken FROM jobs WHERE source = ?",
+            " seconds, updated + 1, content, clip, folder, taken, kept_settings, kept_clip"
+            " FROM jobs WHERE source = ?",
             (str(link / "a.jpg"), str(real / "a.jpg")))
         assert len(journal.jobs()) == 2
     finally:
@@ -2118,3 +2129,35 @@ def test_force_after_the_journal_was_lost_says_what_the_kept_clip_is(tmp_path, q
     assert Path(result.output).name != "a.mp4" and (out / "a.mp4").read_bytes() == made
     assert "a.mp4, its clip of these settings, is kept" in result.note, result.note
     assert "another photo's" not in result.note
+
+
+def test_a_run_that_fails_at_every_photo_leaves_the_clips_there_up_to_date(tmp_path):
+    """A run with a preset too wide for the photos failed at each one and wrote over the
+    records of their clips, still on disk: the next run with the clips' own preset made
+    every clip again (hours, on a large folder), and `status` counted none done."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for seed, name in enumerate(("a.jpg", "b.jpg")):
+        Image.fromarray(textured_image(180, 320, seed)).save(photos / name)
+    output = tmp_path / "out"
+    small = with_overrides(load_preset("preview"), width_px=160, height_px=90, duration_s=0.4)
+    too_wide = with_overrides(small, width_px=8192, height_px=16)
+    options = ClipOptions(depth=DepthOptions(backend="ramp"), threads=1)
+
+    def run(preset):
+        return run_folder(photos, output, preset, options, show_progress=False)
+
+    assert [r.status for r in run(small).results] == ["done", "done"]
+    made = {p.name: p.stat().st_mtime_ns for p in output.glob("*.mp4")}
+    assert [r.status for r in run(too_wide).results] == ["failed", "failed"]
+    assert [r.status for r in run(small).results] == ["skipped", "skipped"]
+    assert {p.name: p.stat().st_mtime_ns for p in output.glob("*.mp4")} == made
+    journal = Journal(output, read_only=True)
+    try:
+        assert journal.counts()["done"] == 2
+    finally:
+        journal.close()
+    # a clip changed since (cut short) is no longer the one kept: made again
+    (output / "a.mp4").write_bytes((output / "a.mp4").read_bytes()[:1000])
+    assert [r.status for r in run(too_wide).results] == ["failed", "failed"]
+    assert [r.status for r in run(small).results] == ["done", "skipped"]
