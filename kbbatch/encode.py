@@ -370,8 +370,9 @@ def is_cut_short_clip(path: Path, written_size_bytes: int) -> bool:
         return False
     if size >= written_size_bytes:
         return False
-    if len(head) < 8:  # stopped within the first box's header (empty: failed at its start)
-        return b"ftyp".startswith(head[4:])
+    if len(head) < 8:  # stopped within the first box's header (empty: failed at its start):
+        # its size, under 2**24 (its first three bytes zero), then `ftyp` (a note is no box)
+        return head[:3] == bytes(min(3, len(head))) and b"ftyp".startswith(head[4:])
     if head[4:8] != b"ftyp":
         return False
     return not is_whole_clip(path, if_unknown=True)

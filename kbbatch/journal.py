@@ -395,6 +395,10 @@ class Journal:
             return False
         if clip_size(job.kept_clip) != size:
             return False
+        from kbbatch.encode import read_clip_mark
+
+        if read_clip_mark(output) != (content, job.kept_settings):  # a file of that size
+            return False
         self.connection.execute(
             "UPDATE jobs SET state = 'done', settings = kept_settings, clip = kept_clip,"
             " error = NULL, kept_settings = NULL, kept_clip = NULL, updated = ?"
@@ -653,7 +657,8 @@ class Journal:
                                    or latest.source == Path(source).name):
             # this photo's own clip (re-rendered, the folder moved, or a journal of an earlier
             # version, which keyed jobs by file name), unless another file was saved over it
-            return not _saved_over(folder / name, latest.clip)
+            # an unfinished attempt knows no clip of its own: the one it was to replace
+            return not _saved_over(folder / name, latest.clip or latest.kept_clip)
         if any(os.path.lexists(folder / file) for file in (name, *companions)):
             return False  # another photo's clip or maps, or a file kbbatch did not write
         return latest is None or latest.state != "running"

@@ -363,12 +363,13 @@ def test_fps_and_duration_on_the_command_line_apply_under_an_entrys_own_preset(t
                                                              "b.jpg": {"preset": "tiny.toml",
                                                                        "duration_s": 1.5}}}))
     result = CliRunner().invoke(cli.main, [
-        str(photos), "-o", str(tmp_path / "out"), "-p", str(tmp_path / "tiny.toml"),
+        str(photos), "-o", str(tmp_path / "out"), "-p", "preview",
         "--manifest", str(manifest), "--fps", "10", "--duration", "2", "--depth", "ramp",
         "--quiet"])
     assert result.exit_code == 0, result.output
     a, b = (probe(tmp_path / "out" / name) for name in ("a.mp4", "b.mp4"))
     assert a.fps == pytest.approx(10) and b.fps == pytest.approx(10)
+    assert (a.width_px, b.width_px) == (160, 160)  # the entry's preset, not the run's
     # 2 s forward, then back; the entry's own duration_s beats --duration
     assert a.duration_s == pytest.approx((2 * 20 - 2) / 10, abs=0.15)
     assert b.duration_s == pytest.approx((2 * 15 - 2) / 10, abs=0.15)

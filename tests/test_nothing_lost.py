@@ -1574,7 +1574,7 @@ def test_a_truncated_clip_is_not_up_to_date(tmp_path, quick_preset, kept):
     assert clip.stat().st_size == len(whole)
 
 
-@pytest.mark.parametrize("saved", ["trimmed video", "other file"])
+@pytest.mark.parametrize("saved", ["trimmed video", "other file", "four bytes"])
 def test_a_file_the_user_saved_over_a_clip_is_never_replaced(tmp_path, quick_preset, saved):
     """The clip trimmed in an editor and saved in place (or any file saved at its name): taken
     for a clip changed since kbbatch wrote it, it was rendered over on the next run."""
@@ -1591,6 +1591,8 @@ def test_a_file_the_user_saved_over_a_clip_is_never_replaced(tmp_path, quick_pre
         subprocess.run([ffmpeg_exe(), "-v", "error", "-i", str(clip), "-t", "0.5", "-c:v",
                         "libx264", str(trimmed)], check=True)
         clip.write_bytes(trimmed.read_bytes())
+    elif saved == "four bytes":  # shorter than an MP4's first box header, and no part of one
+        clip.write_text("todo")
     else:
         clip.write_text("the user's notes")
     users = clip.read_bytes()
@@ -2149,7 +2151,8 @@ def test_a_run_that_fails_at_every_photo_leaves_the_clips_there_up_to_date(tmp_p
 
     assert [r.status for r in run(small).results] == ["done", "done"]
     made = {p.name: p.stat().st_mtime_ns for p in output.glob("*.mp4")}
-    assert [r.status for r in run(too_wide).results] == ["failed", "failed"]
+    for _ in range(2):  # twice: the second attempt keeps what the first kept
+        assert [r.status for r in run(too_wide).results] == ["failed", "failed"]
     assert [r.status for r in run(small).results] == ["skipped", "skipped"]
     assert {p.name: p.stat().st_mtime_ns for p in output.glob("*.mp4")} == made
     journal = Journal(output, read_only=True)
@@ -2161,3 +2164,10 @@ def test_a_run_that_fails_at_every_photo_leaves_the_clips_there_up_to_date(tmp_p
     (output / "a.mp4").write_bytes((output / "a.mp4").read_bytes()[:1000])
     assert [r.status for r in run(too_wide).results] == ["failed", "failed"]
     assert [r.status for r in run(small).results] == ["done", "skipped"]
+    # a file of the user's saved over the kept clip after a failed run is never replaced
+    assert [r.status for r in run(too_wide).results] == ["failed", "failed"]
+    (output / "b.mp4").write_text("the user's notes")
+    again = run(small).results
+    assert [r.status for r in again] == ["skipped", "done"]
+    assert (output / "b.mp4").read_text() == "the user's notes"
+    assert Path(again[1].output).name != "b.mp4"

@@ -483,7 +483,9 @@ class ReviewSession:
                     self.entries = entries
                 self._manifest_signature = signature
         photos = [self.photo_json(name) for name in self.photos]
-        presets = {name: load_preset(name) for name in builtin_names()}
+        # as the render takes them: the command line's --duration and --fps over each
+        presets = {name: with_overrides(load_preset(name), **dict(self.options.preset_overrides))
+                   for name in builtin_names()}
         presets[self.preset.name] = self.preset
         return {
             "folder": str(self.folder), "manifest": str(self.manifest_path),
