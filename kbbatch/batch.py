@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from kbbatch.camera import ASPECT_TOLERANCE
+from kbbatch.camera import working_size
 from kbbatch.depth import DepthError
 from kbbatch.images import (
     LONE_MAP_REASON,
@@ -34,7 +34,13 @@ from kbbatch.images import (
     upright_size,
 )
 from kbbatch.interrupts import interrupted
-from kbbatch.manifest import Manifest, ManifestEntry, ManifestError, loose_name
+from kbbatch.manifest import (
+    CropAspectError,
+    Manifest,
+    ManifestEntry,
+    ManifestError,
+    loose_name,
+)
 from kbbatch.models import providers_used
 from kbbatch.outputs import (
     OutputFolderError,
@@ -1007,14 +1013,17 @@ def _kept_crops_unfit(entry: ManifestEntry, source: Path, preset: Preset,
         return None
     try:
         photo_preset, _ = apply_entry(entry, preset, options)
-        aspect = entry.crop_aspect(*upright_size(source))
+        width, height = upright_size(source)
+        entry.plan(width, height, working_size(width, height)[0], photo_preset.aspect,
+                   photo_preset.easing)
+    except CropAspectError as error:
+        return (f"{entry.where(error.field)}: its crops are {error.crop_aspect:.3f} wide to "
+                f"high, the preset's clips {error.output_aspect:.3f}; kept, and a render at "
+                "this preset fails on them: plan it again (--replan), or render at the preset "
+                "they were made for")
     except (ManifestError, ImageReadError):
         return None  # said by the note, or by the render, as for any photo
-    if aspect is None or abs(aspect / photo_preset.aspect - 1) <= ASPECT_TOLERANCE:
-        return None
-    return (f"{entry.where('start')}: its crops are {aspect:.3f} wide to high, the preset's "
-            f"clips {photo_preset.aspect:.3f}; kept, and a render at this preset fails on them: "
-            "plan it again (--replan), or render at the preset they were made for")
+    return None
 
 
 def _with_own_fields(planned: dict, entry: ManifestEntry | None) -> dict:

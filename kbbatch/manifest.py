@@ -29,6 +29,15 @@ class ManifestError(ValueError):
     pass
 
 
+class CropAspectError(ManifestError):
+    """An entry's crop of another aspect than the clip's: made for another preset."""
+
+    def __init__(self, message: str, field: str, crop_aspect: float, output_aspect: float
+                 ) -> None:
+        super().__init__(message)
+        self.field, self.crop_aspect, self.output_aspect = field, crop_aspect, output_aspect
+
+
 @dataclasses.dataclass(frozen=True)
 class ManifestEntry:
     image: str
@@ -99,8 +108,9 @@ class ManifestEntry:
                 raise ManifestError(f"{self.where(field)}: crop {crop['width']:.4g} wide is "
                                     "too small to frame anything")
             if abs(width / height / aspect - 1) > ASPECT_TOLERANCE:
-                raise ManifestError(f"{self.where(field)}: aspect {width / height:.3f} differs "
-                                    f"from the output's {aspect:.3f}")
+                raise CropAspectError(f"{self.where(field)}: aspect {width / height:.3f} "
+                                      f"differs from the output's {aspect:.3f}", field,
+                                      width / height, aspect)
             source_crop = Crop(crop["center_x"] * scale_x, crop["center_y"] * scale_y, width,
                                height)
             if not source_crop.inside(source_width_px, source_height_px, tolerance_px=0.5):
@@ -110,17 +120,6 @@ class ManifestEntry:
             crops.append(source_crop.scaled(to_working))
         return Plan(crops[0], crops[1], easing=self.data.get("easing", easing),
                     planner="manifest", parallax=self.data.get("planner") != FLAT_PLANNER)
-
-
-    def crop_aspect(self, source_width_px: int, source_height_px: int) -> float | None:
-        """The width-to-height ratio of the start crop on the photo, where the entry gives
-        its height (else the crop takes the output's aspect)."""
-        crop = self.data.get("start")
-        if not crop or "height" not in crop or not crop["height"]:
-            return None
-        if self.data.get("units", "px") == "fraction":
-            return crop["width"] * source_width_px / (crop["height"] * source_height_px)
-        return crop["width"] / crop["height"]
 
     def resized(self, source_width_px: int, source_height_px: int) -> tuple[float, float]:
         """How much the photo was enlarged across and down since its pixel crops were made

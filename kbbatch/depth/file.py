@@ -211,8 +211,7 @@ def _in_float32_range(data: np.ndarray) -> np.ndarray:
     positive value") and 1e300 ones infinite. A map's scale is free: depth is relative."""
     if not np.issubdtype(data.dtype, np.floating) or data.dtype.itemsize <= 4:
         return data
-    with np.errstate(invalid="ignore"):
-        positive = np.abs(data[np.isfinite(data) & (data != 0)])
+    positive = np.abs(data[np.isfinite(data) & (data != 0)])
     limits = np.finfo(np.float32)
     if positive.size == 0 or (positive.max() <= limits.max and positive.min() >= limits.tiny):
         return data
